@@ -1,0 +1,1 @@
+"""Frontends: OpenCV feature tracking and IMU preintegration (depend on `vio` records only)."""

@@ -1,0 +1,268 @@
+"""The capture: what a recording holds, read from and written to the EuRoC/ASL layout.
+
+Layout (`mav0/` under the capture root):
+  cam0/data.csv (`#timestamp [ns],filename`), cam0/data/<t_ns>.png, cam0/sensor.yaml (Kalibr names)
+  imu0/data.csv (`#timestamp [ns],w_x,w_y,w_z [rad/s],a_x,a_y,a_z [m/s^2]`), imu0/sensor.yaml
+  state_groundtruth_estimate0/data.csv (t_ns, p, q_wxyz, v, b_w, b_a), optional
+and, for synthetic captures, `scene/` with `object.stl` (metres) and `scene.yaml`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vio.atomic import write_text
+from vio.csvio import read_numeric_csv
+from vio.errors import CaptureError
+from vio.kalibr import camera_yaml_text, imu_yaml_text, read_camera_yaml, read_imu_yaml
+from vio.records import CameraCalib, Frame, GroundTruth, ImuCalib, ImuSeries
+
+log = logging.getLogger(__name__)
+
+IMU_HEADER = (
+    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
+)
+GT_HEADER = (
+    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
+    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+)
+
+
+@dataclass
+class Capture:
+    """A recording: calibration, IMU stream, frame times with an image loader, optional ground truth."""
+
+    root: Path
+    camera: CameraCalib | None
+    imu_calib: ImuCalib | None
+    imu: ImuSeries | None
+    frame_t_ns: np.ndarray  # (F,) int64 ns
+    load_image: Callable[[int], np.ndarray]  # frame index -> (H, W) uint8 grayscale
+    ground_truth: GroundTruth | None = None
+    scene_dir: Path | None = None
+    warnings: list[str] = field(default_factory=list)
+    format: str = "asl"
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frame_t_ns.shape[0])
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[Frame]:
+        stop = self.num_frames if stop is None else min(stop, self.num_frames)
+        for i in range(start, stop):
+            yield Frame(int(self.frame_t_ns[i]), 0, self.load_image(i))
+
+    def warn(self, message: str) -> None:
+        self.warnings.append(message)
+        log.warning(message)
+
+
+def _check_monotonic(path: Path, t_ns: np.ndarray, rows: list[int], what: str) -> np.ndarray:
+    """Return a keep-mask: exact duplicate timestamps are dropped; going backwards is an error."""
+    d = np.diff(t_ns)
+    back = np.flatnonzero(d < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise CaptureError(f"{what} timestamp goes backwards ({t_ns[i]} after {t_ns[i - 1]})", path, rows[i])
+    keep = np.ones(t_ns.shape[0], bool)
+    keep[1:] = d != 0
+    return keep
+
+
+def read_imu_csv(path: Path, warnings: list[str] | None = None) -> ImuSeries:
+    t, v, rows = read_numeric_csv(path, 7)
+    if t.size == 0:
+        raise CaptureError("no IMU samples", path)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        msg = f"{path}:{rows[i]}: {int(bad.sum())} IMU row(s) with NaN/inf dropped (first here)"
+        log.warning(msg)
+        if warnings is not None:
+            warnings.append(msg)
+        t, v, rows = t[~bad], v[~bad], [r for r, b in zip(rows, bad, strict=True) if not b]
+    keep = _check_monotonic(path, t, rows, "IMU")
+    if not keep.all():
+        msg = f"{path}: {int((~keep).sum())} duplicate IMU timestamp(s) dropped"
+        log.warning(msg)
+        if warnings is not None:
+            warnings.append(msg)
+    return ImuSeries(t[keep], v[keep, 0:3].copy(), v[keep, 3:6].copy())
+
+
+def read_groundtruth_csv(path: Path) -> GroundTruth:
+    t, v, rows = read_numeric_csv(path, 17)
+    if t.size == 0:
+        raise CaptureError("no ground-truth rows", path)
+    if not np.isfinite(v).all():
+        i = int(np.flatnonzero(~np.isfinite(v).all(axis=1))[0])
+        raise CaptureError("NaN in ground truth", path, rows[i])
+    keep = _check_monotonic(path, t, rows, "ground-truth")
+    v = v[keep]
+    q = v[:, 3:7] / np.linalg.norm(v[:, 3:7], axis=1, keepdims=True)
+    return GroundTruth(t[keep], v[:, 0:3], q, v[:, 7:10], v[:, 10:13], v[:, 13:16])
+
+
+def _read_cam_csv(path: Path) -> tuple[np.ndarray, list[str], list[int]]:
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise CaptureError("file not found", path) from None
+    t_ns: list[int] = []
+    names: list[str] = []
+    rows: list[int] = []
+    for lineno, line in enumerate(lines, start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = [p.strip() for p in s.split(",")]
+        if len(parts) != 2:
+            raise CaptureError(f"expected 'timestamp,filename', found {len(parts)} fields", path, lineno)
+        try:
+            t_ns.append(int(parts[0]))
+        except ValueError:
+            raise CaptureError(f"timestamp {parts[0][:30]!r} is not an integer (ns)", path, lineno) from None
+        names.append(parts[1])
+        rows.append(lineno)
+    return np.asarray(t_ns, np.int64), names, rows
+
+
+def find_mav0(root: Path) -> Path:
+    root = Path(root)
+    if not root.exists():
+        raise CaptureError("capture folder not found", root)
+    for cand in (root / "mav0", root):
+        if (cand / "cam0").is_dir() or (cand / "imu0").is_dir():
+            return cand
+    raise CaptureError("not an ASL/EuRoC capture (no mav0/cam0 or mav0/imu0 folder)", root)
+
+
+def read_asl(root: str | os.PathLike[str]) -> Capture:
+    """Read an ASL/EuRoC capture folder (the folder holding `mav0/`, or `mav0/` itself)."""
+    root = Path(root)
+    mav0 = find_mav0(root)
+    warnings: list[str] = []
+    camera = (
+        read_camera_yaml(mav0 / "cam0" / "sensor.yaml") if (mav0 / "cam0" / "sensor.yaml").exists() else None
+    )
+    imu_calib = (
+        read_imu_yaml(mav0 / "imu0" / "sensor.yaml") if (mav0 / "imu0" / "sensor.yaml").exists() else None
+    )
+    imu = (
+        read_imu_csv(mav0 / "imu0" / "data.csv", warnings) if (mav0 / "imu0" / "data.csv").exists() else None
+    )
+    frame_t = np.zeros(0, np.int64)
+    paths: list[Path] = []
+    cam_csv = mav0 / "cam0" / "data.csv"
+    if cam_csv.exists():
+        frame_t, names, rows = _read_cam_csv(cam_csv)
+        keep = _check_monotonic(cam_csv, frame_t, rows, "frame")
+        if not keep.all():
+            warnings.append(f"{cam_csv}: {int((~keep).sum())} duplicate frame timestamp(s) dropped")
+        frame_t = frame_t[keep]
+        paths = [mav0 / "cam0" / "data" / n for n, k in zip(names, keep, strict=True) if k]
+    gt = None
+    gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    if gt_csv.exists():
+        gt = read_groundtruth_csv(gt_csv)
+    scene = root / "scene" if (root / "scene").is_dir() else None
+
+    def load(i: int) -> np.ndarray:
+        p = paths[i]
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise CaptureError("image missing or cannot be decoded", p)
+        return img
+
+    cap = Capture(root, camera, imu_calib, imu, frame_t, load, gt, scene, [], "asl")
+    for w in warnings:
+        cap.warn(w)
+    return cap
+
+
+class AslWriter:
+    """Writes an ASL capture into a temporary folder and renames it into place on `close()`.
+
+    A capture that fails half-way never appears under the target name.
+    """
+
+    def __init__(self, root: str | os.PathLike[str], overwrite: bool = False) -> None:
+        self.root = Path(root)
+        if self.root.exists() and not overwrite and any(self.root.iterdir()):
+            raise CaptureError("output folder exists and is not empty (use --force to replace it)", self.root)
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.", dir=self.root.parent))
+        self.mav0 = self.tmp / "mav0"
+        (self.mav0 / "cam0" / "data").mkdir(parents=True)
+        (self.mav0 / "imu0").mkdir(parents=True)
+        self._frames: list[int] = []
+        self._closed = False
+
+    @property
+    def scene_dir(self) -> Path:
+        d = self.tmp / "scene"
+        d.mkdir(exist_ok=True)
+        return d
+
+    def write_camera(self, cam: CameraCalib, comment: str = "vio camera") -> None:
+        write_text(self.mav0 / "cam0" / "sensor.yaml", camera_yaml_text(cam, comment))
+
+    def write_imu(self, calib: ImuCalib, imu: ImuSeries, comment: str = "vio imu") -> None:
+        write_text(self.mav0 / "imu0" / "sensor.yaml", imu_yaml_text(calib, comment))
+        lines = [IMU_HEADER]
+        for t, w, a in zip(imu.t_ns, imu.gyro, imu.acc, strict=True):
+            lines.append(f"{int(t)}," + ",".join(f"{x:.9g}" for x in (*w, *a)))
+        write_text(self.mav0 / "imu0" / "data.csv", "\n".join(lines) + "\n")
+
+    def add_frame(self, t_ns: int, image: np.ndarray) -> None:
+        """Write one image as `<t_ns>.png` (lossless; PNG compression level fixed for determinism)."""
+        if self._frames and t_ns <= self._frames[-1]:
+            raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
+        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise CaptureError("PNG encoding failed", self.root)
+        (self.mav0 / "cam0" / "data" / f"{int(t_ns)}.png").write_bytes(buf.tobytes())
+        self._frames.append(int(t_ns))
+
+    def write_groundtruth(self, gt: GroundTruth) -> None:
+        d = self.mav0 / "state_groundtruth_estimate0"
+        d.mkdir(exist_ok=True)
+        lines = [GT_HEADER]
+        for i in range(len(gt)):
+            vals = (*gt.p_world[i], *gt.q_wxyz[i], *gt.v_world[i], *gt.b_w[i], *gt.b_a[i])
+            lines.append(f"{int(gt.t_ns[i])}," + ",".join(f"{x:.12g}" for x in vals))
+        write_text(d / "data.csv", "\n".join(lines) + "\n")
+        write_text(d / "sensor.yaml", "%YAML:1.0\nsensor_type: visual-inertial\ncomment: ground truth\n")
+
+    def close(self) -> Path:
+        lines = ["#timestamp [ns],filename"] + [f"{t},{t}.png" for t in self._frames]
+        write_text(self.mav0 / "cam0" / "data.csv", "\n".join(lines) + "\n")
+        if self.root.exists():
+            shutil.rmtree(self.root)
+        os.replace(self.tmp, self.root)
+        self._closed = True
+        return self.root
+
+    def abort(self) -> None:
+        if not self._closed:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def __enter__(self) -> AslWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

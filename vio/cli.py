@@ -1,0 +1,178 @@
+"""The `vio` command line: parses arguments and calls library functions (heavy imports stay inside commands)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from vio import __version__
+from vio.errors import VioError
+
+log = logging.getLogger("vio")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", help="YAML config file (sections: tracker, keyframes, imu, backend, run)")
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override"
+    )
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from vio.sim.api import simulate
+
+    simulate(
+        args.scenario,
+        args.out,
+        seed=args.seed,
+        duration_s=args.duration,
+        imu_grade=args.imu,
+        overwrite=args.force,
+        images=not args.no_images,
+    )
+    return 0
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    from vio.config import load_config
+    from vio.track import track_capture
+
+    cfg = load_config(args.config, args.overrides)
+    track_capture(args.capture, args.out, cfg)
+    return 0
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from vio.config import load_config
+    from vio.pipeline import run_capture
+
+    cfg = load_config(args.config, args.overrides)
+    run_capture(
+        args.capture,
+        args.out,
+        cfg,
+        positions=args.positions,
+        rrd=args.rrd,
+        serve=args.serve,
+        spawn=args.spawn,
+        port=args.port,
+        refine=args.refine or None,
+        calib=args.calib,
+    )
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from vio.evaluate import evaluate_files
+
+    print(evaluate_files(args.gt, args.est, align=args.align, json_out=args.json))
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from vio.bench import run_bench
+
+    run_bench(args.suite, args.out, jobs=args.jobs)
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from vio.info import capture_info
+
+    print(capture_info(args.capture, calib=args.calib))
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from vio.demo import run_demo
+
+    print(run_demo(args.out, duration_s=args.duration, seed=args.seed))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vio", description="Metric visual-inertial odometry with GTSAM.")
+    parser.add_argument("--version", action="version", version=f"vio {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("simulate", help="write a synthetic capture (ASL layout)")
+    p.add_argument("scenario", help="orbit | figure8 | room | a trajectory file (EuRoC CSV or TUM)")
+    p.add_argument("--out", required=True, help="output capture folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's own)")
+    p.add_argument("--imu", choices=["phone", "tactical", "ideal"], default="phone")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--no-images", action="store_true", help="skip rendering (IMU and ground truth only)")
+    p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")
+    p.add_argument("capture")
+    p.add_argument("--out", required=True, help="tracks CSV")
+    _add_config_args(p)
+    p.set_defaults(func=_cmd_track)
+
+    p = sub.add_parser("run", help="estimate poses, velocities, biases and landmarks")
+    p.add_argument("capture", help="capture folder, bag, phone log, or gtsam's eqvio CSV")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--positions", help="known positions CSV: t_s,x,y,z,sigma_m")
+    p.add_argument("--calib", help="Kalibr YAML or ASL mav0 folder with the calibration")
+    p.add_argument("--refine", action="store_true", help="final full batch refinement")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--rrd", help="save a rerun recording")
+    g.add_argument("--serve", action="store_true", help="serve the rerun web viewer on 127.0.0.1")
+    g.add_argument("--spawn", action="store_true", help="spawn the native rerun viewer")
+    p.add_argument("--port", type=int, default=0, help="web viewer port with --serve (0: choose)")
+    _add_config_args(p)
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("eval", help="score a trajectory against ground truth")
+    p.add_argument("--gt", required=True, help="ground truth (TUM or EuRoC CSV)")
+    p.add_argument("--est", required=True, help="estimate (TUM or EuRoC CSV)")
+    p.add_argument("--align", choices=["se3", "posyaw", "sim3", "none"], default="se3")
+    p.add_argument("--json", help="also write the metrics as JSON")
+    p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("bench", help="Monte-Carlo drift benchmark against baselines")
+    p.add_argument("--suite", choices=["quick", "full"], default="quick")
+    p.add_argument("--out", required=True)
+    p.add_argument("--jobs", type=int, default=2)
+    p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("info", help="what is in a capture")
+    p.add_argument("capture")
+    p.add_argument("--calib", help="Kalibr YAML or ASL mav0 folder with the calibration")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("demo", help="simulate the orbit capture, run, evaluate, report")
+    p.add_argument("--out", default="out/demo")
+    p.add_argument("--duration", type=float, default=30.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from vio.log import setup_logging
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    setup_logging(args.verbose)
+    try:
+        return int(args.func(args) or 0)
+    except VioError as exc:
+        print(f"vio {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"vio {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,38 @@
+"""One exception hierarchy. A user's mistake becomes one clear line on the command line, never a traceback."""
+
+from __future__ import annotations
+
+
+class VioError(Exception):
+    """Base class of every error this project raises on purpose."""
+
+
+class ConfigError(VioError):
+    """A configuration file or `--set` override is invalid (unknown key, wrong type)."""
+
+
+class CaptureError(VioError):
+    """A capture is missing, malformed or inconsistent. The message names the file, the row and the problem."""
+
+    def __init__(self, message: str, path: object | None = None, row: int | None = None) -> None:
+        where = ""
+        if path is not None:
+            where = f"{path}"
+            if row is not None:
+                where += f":{row}"
+            where += ": "
+        super().__init__(f"{where}{message}")
+        self.path = path
+        self.row = row
+
+
+class CalibrationError(VioError):
+    """Calibration is missing or invalid."""
+
+
+class EstimationError(VioError):
+    """The estimator could not produce an estimate (for example, initialisation never succeeded)."""
+
+
+class SimulationError(VioError):
+    """A simulation scenario or trajectory file is invalid."""

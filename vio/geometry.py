@@ -1,0 +1,41 @@
+"""Small rigid-body helpers on 4x4 matrices and quaternions (conversions happen only at file boundaries)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:  # noqa: N802
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:  # noqa: N802
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def quat_wxyz_to_R(q_wxyz: np.ndarray) -> np.ndarray:  # noqa: N802
+    q = np.asarray(q_wxyz, float)
+    return Rotation.from_quat(q[..., [1, 2, 3, 0]]).as_matrix()
+
+
+def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:  # noqa: N802
+    """Rotation matrix (or stack) to unit quaternion(s) w-first with w >= 0."""
+    q_xyzw = Rotation.from_matrix(R).as_quat()
+    q = q_xyzw[..., [3, 0, 1, 2]]
+    sign = np.where(q[..., :1] < 0, -1.0, 1.0)
+    return q * sign
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    x, y, z = v
+    return np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]], float)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))

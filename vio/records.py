@@ -1,0 +1,165 @@
+"""Typed records passed between stages. Units and frames are in each field's comment.
+
+Frames: world is z-up with gravity (0, 0, -9.81) m/s^2; body is the IMU frame; the camera frame is OpenCV's
+(x right, y down, z forward). Transforms are 4x4 homogeneous matrices named `target_T_source`.
+Time is integer nanoseconds (`t_ns`); seconds are only used to compute dt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+GRAVITY_M_S2 = 9.81
+GRAVITY_WORLD = np.array([0.0, 0.0, -GRAVITY_M_S2])  # m/s^2, world frame (z up)
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    t_ns: int  # sensor time, ns
+    gyro: np.ndarray  # (3,) angular rate of body in body frame, rad/s
+    acc: np.ndarray  # (3,) specific force (includes the reaction to gravity) in body frame, m/s^2
+
+
+@dataclass(frozen=True)
+class ImuSeries:
+    """A whole IMU stream as arrays (the efficient form of a sequence of `ImuSample`)."""
+
+    t_ns: np.ndarray  # (N,) int64, strictly increasing, ns
+    gyro: np.ndarray  # (N, 3) rad/s, body frame
+    acc: np.ndarray  # (N, 3) m/s^2 specific force, body frame
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def __iter__(self) -> Iterator[ImuSample]:
+        for i in range(len(self)):
+            yield ImuSample(int(self.t_ns[i]), self.gyro[i], self.acc[i])
+
+    def window(self, t0_ns: int, t1_ns: int) -> ImuSeries:
+        """Samples with t0_ns <= t <= t1_ns."""
+        i0, i1 = np.searchsorted(self.t_ns, [t0_ns, t1_ns], side="left")
+        i1 = i1 + 1 if i1 < len(self) and self.t_ns[i1] == t1_ns else i1
+        return ImuSeries(self.t_ns[i0:i1], self.gyro[i0:i1], self.acc[i0:i1])
+
+
+@dataclass(frozen=True)
+class Frame:
+    t_ns: int  # exposure mid-point in sensor time, ns
+    cam_id: int  # camera index (0 for the only camera of a phone capture)
+    image: np.ndarray  # (H, W) uint8 grayscale, or (H, W, 3) uint8 BGR
+
+
+@dataclass(frozen=True)
+class FeatureTracks:
+    t_ns: int  # frame time, ns
+    ids: np.ndarray  # (N,) int64 track ids, stable across frames
+    uv: np.ndarray  # (N, 2) float64 pixel coordinates in the *distorted* image, px
+    cam_id: int = 0
+
+
+@dataclass(frozen=True)
+class CameraCalib:
+    """Pinhole camera with radial-tangential (radtan, OpenCV k1 k2 p1 p2) distortion."""
+
+    width: int  # px
+    height: int  # px
+    fx: float  # px
+    fy: float  # px
+    cx: float  # px
+    cy: float  # px
+    dist: np.ndarray  # (4,) radtan k1, k2, p1, p2
+    body_T_cam: np.ndarray  # (4, 4) camera pose in the body (IMU) frame, Kalibr's T_BS
+    rate_hz: float = 20.0  # nominal frame rate, Hz
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the conventional name
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def project(self, p_cam: np.ndarray) -> np.ndarray:
+        """Project (N, 3) points in the camera frame to (N, 2) distorted pixels (no visibility check)."""
+        p_cam = np.atleast_2d(np.asarray(p_cam, dtype=float))
+        xn = p_cam[:, :2] / p_cam[:, 2:3]
+        return self.distort_normalized(xn)
+
+    def distort_normalized(self, xn: np.ndarray) -> np.ndarray:
+        """Map (N, 2) undistorted normalized coordinates to (N, 2) distorted pixels."""
+        k1, k2, p1, p2 = (float(c) for c in self.dist)
+        x, y = xn[:, 0], xn[:, 1]
+        r2 = x * x + y * y
+        radial = 1.0 + k1 * r2 + k2 * r2 * r2
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        return np.column_stack([self.fx * xd + self.cx, self.fy * yd + self.cy])
+
+    def undistort_to_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Map (N, 2) distorted pixels to (N, 2) undistorted normalized coordinates (OpenCV, iterative)."""
+        import cv2
+
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        if uv.shape[0] == 0:
+            return np.zeros((0, 2))
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+        out = cv2.undistortPointsIter(uv, self.K, self.dist.astype(np.float64), None, None, crit)
+        return out.reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class ImuCalib:
+    """IMU noise in Kalibr's names and units (continuous-time densities)."""
+
+    gyroscope_noise_density: float  # rad/s/sqrt(Hz)
+    accelerometer_noise_density: float  # m/s^2/sqrt(Hz)
+    gyroscope_random_walk: float  # rad/s^2/sqrt(Hz)
+    accelerometer_random_walk: float  # m/s^3/sqrt(Hz)
+    rate_hz: float = 200.0  # nominal sample rate, Hz
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Ground-truth body states (EuRoC `state_groundtruth_estimate0` columns)."""
+
+    t_ns: np.ndarray  # (N,) int64, ns
+    p_world: np.ndarray  # (N, 3) body position in world, m
+    q_wxyz: np.ndarray  # (N, 4) world_R_body as a unit quaternion, w first
+    v_world: np.ndarray  # (N, 3) body velocity in world, m/s
+    b_w: np.ndarray  # (N, 3) gyro bias, rad/s
+    b_a: np.ndarray  # (N, 3) accelerometer bias, m/s^2
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def world_T_body(self, i: int) -> np.ndarray:
+        """(4, 4) pose of sample i."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.eye(4)
+        w, x, y, z = self.q_wxyz[i]
+        T[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
+        T[:3, 3] = self.p_world[i]
+        return T
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    k: int  # keyframe index (shared by the X(k), V(k), B(k) keys)
+    t_ns: int  # keyframe time, ns
+    tracks: FeatureTracks  # the features seen in this keyframe
+    preintegrated: Any = None  # gtsam.PreintegratedCombinedMeasurements from keyframe k-1 to k (None for k=0)
+    imu_gap: bool = False  # True when the IMU had a gap longer than allowed between k-1 and k
+
+
+@dataclass(frozen=True)
+class StateEstimate:
+    k: int  # keyframe index
+    t_ns: int  # keyframe time, ns
+    world_T_body: np.ndarray  # (4, 4) body (IMU) pose in world
+    v_world: np.ndarray  # (3,) velocity of the body in world, m/s
+    bias_gyro: np.ndarray  # (3,) rad/s
+    bias_acc: np.ndarray  # (3,) m/s^2
+    landmark_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (M,) track ids
+    landmarks_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (M, 3) m, world
+    solve_ms: float = 0.0  # wall time of the update that produced this estimate, ms
