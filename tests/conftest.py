@@ -14,9 +14,7 @@ def shared_path(*parts: str) -> Path:
     """Path inside ../shared/data; skips the calling test with a clear reason when it is absent."""
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
-        pytest.skip(
-            f"real data not available: {p} (the ../shared/data folder is only on the developers' machines)"
-        )
+        pytest.skip(f"real data not available: {p} (the ../shared/data folder is only on the developers' machines)")
     return p
 
 
@@ -37,9 +35,7 @@ def sim_capture(tmp_path_factory):
             from vio.sim.api import simulate
 
             out = tmp_path_factory.mktemp("sim") / f"{scenario}_{imu}_{seed}_{duration_s:g}"
-            cache[key] = simulate(
-                scenario, out, seed=seed, duration_s=duration_s, imu_grade=imu, images=images
-            )
+            cache[key] = simulate(scenario, out, seed=seed, duration_s=duration_s, imu_grade=imu, images=images)
         return cache[key]
 
     return make

@@ -153,15 +153,9 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
     root = Path(root)
     mav0 = find_mav0(root)
     warnings: list[str] = []
-    camera = (
-        read_camera_yaml(mav0 / "cam0" / "sensor.yaml") if (mav0 / "cam0" / "sensor.yaml").exists() else None
-    )
-    imu_calib = (
-        read_imu_yaml(mav0 / "imu0" / "sensor.yaml") if (mav0 / "imu0" / "sensor.yaml").exists() else None
-    )
-    imu = (
-        read_imu_csv(mav0 / "imu0" / "data.csv", warnings) if (mav0 / "imu0" / "data.csv").exists() else None
-    )
+    camera = read_camera_yaml(mav0 / "cam0" / "sensor.yaml") if (mav0 / "cam0" / "sensor.yaml").exists() else None
+    imu_calib = read_imu_yaml(mav0 / "imu0" / "sensor.yaml") if (mav0 / "imu0" / "sensor.yaml").exists() else None
+    imu = read_imu_csv(mav0 / "imu0" / "data.csv", warnings) if (mav0 / "imu0" / "data.csv").exists() else None
     frame_t = np.zeros(0, np.int64)
     paths: list[Path] = []
     cam_csv = mav0 / "cam0" / "data.csv"

@@ -33,9 +33,7 @@ class TrackerConfig:
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_parallax_px: float = (
-        12.0  # median track displacement since the last keyframe that makes a keyframe, px
-    )
+    min_parallax_px: float = 12.0  # median track displacement since the last keyframe that makes a keyframe, px
     min_survival: float = 0.7  # fraction of last keyframe's tracks still alive below which a keyframe is made
     max_interval_s: float = 0.2  # a keyframe at least this often, s
     min_interval_s: float = 0.05  # never closer than this, s

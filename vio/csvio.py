@@ -9,9 +9,7 @@ import numpy as np
 from vio.errors import CaptureError
 
 
-def read_numeric_csv(
-    path: Path, ncols: int, int_first: bool = True
-) -> tuple[np.ndarray, np.ndarray, list[int]]:
+def read_numeric_csv(path: Path, ncols: int, int_first: bool = True) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Read a headered CSV of numbers: returns (first column as int64, the rest as float64, source row numbers).
 
     Lines starting with '#' or a letter are treated as headers only before the first data row. A row with the

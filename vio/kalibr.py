@@ -58,9 +58,7 @@ def read_camera_yaml(path: Path) -> CameraCalib:
         fx, fy, cx, cy = (float(v) for v in data["intrinsics"])
         width, height = (int(v) for v in data["resolution"])
     except (KeyError, TypeError, ValueError):
-        raise CalibrationError(
-            f"{path}: needs 'intrinsics: [fu, fv, cu, cv]' and 'resolution: [w, h]'"
-        ) from None
+        raise CalibrationError(f"{path}: needs 'intrinsics: [fu, fv, cu, cv]' and 'resolution: [w, h]'") from None
     model = str(data.get("distortion_model", "radtan")).lower()
     if model not in ("radtan", "radial-tangential", "none"):
         raise CalibrationError(f"{path}: distortion model '{model}' is not supported (radtan only)")

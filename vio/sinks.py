@@ -12,9 +12,7 @@ from vio.records import CameraCalib, Frame, GroundTruth, ImuSeries, StateEstimat
 class EstimateSink(Protocol):
     """Subscribers receive records in sensor-time order, one keyframe at a time."""
 
-    def on_start(
-        self, camera: CameraCalib | None, imu: ImuSeries | None, ground_truth: GroundTruth | None
-    ) -> None:
+    def on_start(self, camera: CameraCalib | None, imu: ImuSeries | None, ground_truth: GroundTruth | None) -> None:
         """Once, before the first frame: static calibration, the whole IMU stream, ground truth if any."""
 
     def on_frame(self, frame: Frame, ids: np.ndarray, uv: np.ndarray, ages: np.ndarray) -> None:
