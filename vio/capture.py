@@ -24,7 +24,7 @@ from vio.atomic import write_text
 from vio.csvio import read_numeric_csv
 from vio.errors import CaptureError
 from vio.kalibr import camera_yaml_text, imu_yaml_text, read_camera_yaml, read_imu_yaml
-from vio.records import CameraCalib, Frame, GroundTruth, ImuCalib, ImuSeries
+from vio.records import CameraCalib, FeatureTracks, Frame, GroundTruth, ImuCalib, ImuSeries
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,7 @@ class Capture:
     scene_dir: Path | None = None
     warnings: list[str] = field(default_factory=list)
     format: str = "asl"
+    tracks: list[FeatureTracks] | None = None  # precomputed feature tracks (e.g. gtsam's eqvio file); no images
 
     @property
     def num_frames(self) -> int:
