@@ -95,16 +95,31 @@ class CameraCalib:
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         return np.column_stack([self.fx * xd + self.cx, self.fy * yd + self.cy])
 
-    def undistort_to_normalized(self, uv: np.ndarray) -> np.ndarray:
-        """Map (N, 2) distorted pixels to (N, 2) undistorted normalized coordinates (OpenCV, iterative)."""
-        import cv2
-
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-        if uv.shape[0] == 0:
-            return np.zeros((0, 2))
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
-        out = cv2.undistortPointsIter(uv, self.K, self.dist.astype(np.float64), None, None, crit)
-        return out.reshape(-1, 2)
+    def undistort_to_normalized(self, uv: np.ndarray, iterations: int = 20) -> np.ndarray:
+        """Map (N, 2) distorted pixels to (N, 2) undistorted normalized coordinates (Gauss-Newton on radtan)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        target = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
+        k1, k2, p1, p2 = (float(c) for c in self.dist)
+        xy = target.copy()
+        for _ in range(iterations):
+            x, y = xy[:, 0], xy[:, 1]
+            r2 = x * x + y * y
+            radial = 1.0 + k1 * r2 + k2 * r2 * r2
+            drad = 2.0 * k1 + 4.0 * k2 * r2  # d(radial)/d(r2) * 2
+            fx_ = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - target[:, 0]
+            fy_ = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - target[:, 1]
+            j11 = radial + x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+            j12 = x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+            j21 = x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+            j22 = radial + y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+            det = j11 * j22 - j12 * j21
+            dx = (j22 * fx_ - j12 * fy_) / det
+            dy = (-j21 * fx_ + j11 * fy_) / det
+            xy[:, 0] -= dx
+            xy[:, 1] -= dy
+            if max(np.abs(dx).max(initial=0.0), np.abs(dy).max(initial=0.0)) < 1e-14:
+                break
+        return xy
 
 
 @dataclass(frozen=True)
