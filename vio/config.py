@@ -42,10 +42,10 @@ class KeyframeConfig:
 @dataclass(frozen=True)
 class ImuConfig:
     max_gap_s: float = 0.05  # an IMU gap longer than this between samples is reported
-    integration_sigma: float = 1e-8  # preintegration integration covariance (continuous), (m/s^2)^2 * s
+    integration_sigma: float = 1e-4  # sigma of the position-integration error (gtsam cov = sigma^2), m/sqrt(s)
     bias_init_sigma_gyro: float = 0.01  # prior sigma on the initial gyro bias, rad/s
     bias_init_sigma_acc: float = 0.1  # prior sigma on the initial accelerometer bias, m/s^2
-    noise_inflation: float = 1.0  # multiplies the capture's Kalibr noise densities
+    noise_inflation: float = 1.0  # multiplies the capture's Kalibr noise densities and random walks
 
 
 @dataclass(frozen=True)
