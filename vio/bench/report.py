@@ -1,0 +1,172 @@
+"""Benchmark outputs: `results.json` (one row per run) and `results.md` (medians per scenario / IMU / method).
+
+Row fields (null where not applicable): `ate_se3_m`, `ate_posyaw_m` (RMSE after SE3 / 4-DoF position+yaw
+alignment, m; null for `vision_only`, whose scale is unknown), `ate_sim3_m` and `scale` (Sim3 alignment), `drift_pct`
+(final position error after the 4-DoF alignment, Sim3 for `vision_only`, as % of the ground-truth path length),
+`rtf` (estimation wall time / capture duration), `latency_ms_p50/p95/max` (per-keyframe update time of online
+methods), `peak_rss_mb` (peak resident memory of the run's own process, MiB). A failed run has an `error` field.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from vio.atomic import write_json, write_text
+
+log = logging.getLogger(__name__)
+
+ROW_KEYS = (
+    "scenario",
+    "seed",
+    "imu",
+    "method",
+    "ate_se3_m",
+    "ate_posyaw_m",
+    "ate_sim3_m",
+    "scale",
+    "drift_pct",
+    "rtf",
+    "latency_ms_p50",
+    "latency_ms_p95",
+    "latency_ms_max",
+    "peak_rss_mb",
+)
+METRIC_KEYS = ROW_KEYS[4:]
+METHOD_ORDER = ("vio", "batch", "vio_lag3s", "vision_only", "imu_only")
+
+
+def empty_row(case: Any, method: str) -> dict[str, Any]:
+    """A row with the case's identity and every metric null."""
+    row: dict[str, Any] = dict.fromkeys(ROW_KEYS)
+    row.update(scenario=case.label, seed=case.seed, imu=case.imu, method=method)
+    return row
+
+
+def _clean(v: Any) -> Any:
+    """JSON-safe: NaN/inf become null."""
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _median(values: list[Any]) -> float | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    return statistics.median(vals) if vals else None
+
+
+def _method_rank(m: str) -> tuple[int, str]:
+    return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m)
+
+
+def _fmt(v: float | None, key: str) -> str:
+    if v is None:
+        return "-"
+    if key.startswith(("ate_", "rpe_")):
+        return f"{v * 1000:.1f}" if abs(v) < 1.0 else f"{v:.2f} m"
+    if key == "scale":
+        return f"{v:.4f}"
+    if key == "drift_pct":
+        return f"{v:.2f}" if abs(v) < 100 else f"{v:.0f}"
+    if key == "rtf":
+        return f"{v:.2f}"
+    return f"{v:.0f}" if abs(v) >= 10 else f"{v:.1f}"
+
+
+def median_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Medians of every metric per (scenario, imu, method) over seeds, with the run and failure counts."""
+    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        groups[(str(r["scenario"]), str(r["imu"]), str(r["method"]))].append(r)
+    out = []
+    for (scen, imu, meth), rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], _method_rank(kv[0][2]))):
+        ok = [r for r in rs if "error" not in r]
+        entry: dict[str, Any] = {
+            "scenario": scen,
+            "imu": imu,
+            "method": meth,
+            "runs": len(rs),
+            "failed": len(rs) - len(ok),
+        }
+        entry.update({k: _median([r.get(k) for r in ok]) for k in METRIC_KEYS})
+        out.append(entry)
+    return out
+
+
+def overall_medians(rows: list[dict[str, Any]], key: str = "ate_se3_m") -> dict[str, float | None]:
+    """Median of `key` per method over all successful runs."""
+    by: dict[str, list[Any]] = defaultdict(list)
+    for r in rows:
+        if "error" not in r:
+            by[str(r["method"])].append(r.get(key))
+    return {m: _median(v) for m, v in sorted(by.items(), key=lambda kv: _method_rank(kv[0]))}
+
+
+def paired_ratio(rows: list[dict[str, Any]], num: str, den: str, key: str = "ate_se3_m") -> float | None:
+    """Median over captures of key(num) / key(den), pairing the two methods' rows on the same capture."""
+    by: dict[tuple, dict[str, float]] = defaultdict(dict)
+    for r in rows:
+        if "error" not in r and r.get(key) is not None:
+            by[(r["scenario"], r["imu"], r["seed"])][r["method"]] = r[key]
+    ratios = [d[num] / d[den] for d in by.values() if num in d and den in d and d[den] > 0]
+    return statistics.median(ratios) if ratios else None
+
+
+def markdown(rows: list[dict[str, Any]], title: str = "", wall_s: float | None = None, jobs: int = 0) -> str:
+    """The results table: medians per scenario / IMU grade / method, then the headline ratios and failures."""
+    cols = [
+        ("ATE SE3 mm", "ate_se3_m"),
+        ("ATE 4-DoF mm", "ate_posyaw_m"),
+        ("ATE Sim3 mm", "ate_sim3_m"),
+        ("scale", "scale"),
+        ("drift %", "drift_pct"),
+        ("RTF", "rtf"),
+        ("lat p50 ms", "latency_ms_p50"),
+        ("lat p95 ms", "latency_ms_p95"),
+        ("lat max ms", "latency_ms_max"),
+        ("RSS MiB", "peak_rss_mb"),
+    ]
+    lines = [f"# {title}" if title else "# vio bench", ""]
+    if wall_s is not None:
+        lines += [f"{len(rows)} runs in {wall_s / 60:.1f} min with {jobs} parallel jobs.", ""]
+    lines += [
+        "Medians over seeds. ATE is the position RMSE in mm (m where marked) after the named alignment; drift is the "
+        "final position error after the 4-DoF (vision_only: Sim3) alignment as % of path length; RTF is wall time "
+        "/ capture duration; latency is the per-keyframe update time.",
+        "",
+        "| scenario | IMU | method | runs | " + " | ".join(c for c, _ in cols) + " |",
+        "|---|---|---|---:|" + "---:|" * len(cols),
+    ]
+    for e in median_table(rows):
+        runs = f"{e['runs'] - e['failed']}/{e['runs']}"
+        cells = " | ".join(_fmt(e[k], k) for _, k in cols)
+        lines.append(f"| {e['scenario']} | {e['imu']} | {e['method']} | {runs} | {cells} |")
+    meds = overall_medians(rows)
+    lines += ["", "Median ATE (SE3) over all captures: " + ", ".join(f"{m} {_fmt(v, 'ate_')}" for m, v in meds.items())]
+    for num in ("vio", "vio_lag3s"):
+        ratio = paired_ratio(rows, num, "batch")
+        if ratio is not None:
+            lines.append(f"Median over captures of ATE({num}) / ATE(batch): {ratio:.2f}")
+    failed = [r for r in rows if "error" in r]
+    if failed:
+        lines += ["", "## Failed runs", ""]
+        lines += [f"- {r['scenario']} {r['imu']} seed {r['seed']} {r['method']}: {r['error']}" for r in failed]
+    return "\n".join(lines) + "\n"
+
+
+def write_reports(
+    suite: Any, rows: list[dict[str, Any]], out: Path, wall_s: float | None = None, jobs: int = 0
+) -> None:
+    """results.json, results.md and (unless the suite says not to) plots/ under `out`."""
+    clean = [{k: _clean(v) for k, v in r.items()} for r in rows]
+    write_json(out / "results.json", {"runs": clean})
+    write_text(out / "results.md", markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs))
+    if getattr(suite, "plots", True):
+        from vio.bench.plots import make_plots
+
+        try:
+            make_plots(suite, clean, out)
+        except Exception as exc:  # noqa: BLE001 - a plotting problem must not lose the numbers
+            log.warning("bench: plots failed: %s: %s", exc.__class__.__name__, exc)

@@ -1,0 +1,83 @@
+"""Benchmark suites: which captures (scenario x IMU grade x seed x duration) and which methods to run.
+
+A *case* is one simulated capture; a *method* is one way of estimating the trajectory from it. Methods are
+named rows of `results.json`: `imu_only` (the thesis's dead reckoning), `vio` (the online estimator as shipped),
+`batch` (full Levenberg-Marquardt over the same graph, the optimum), `vision_only` (the same frontend and graph
+without IMU factors, scored after Sim3 alignment because its scale is unknown), and variants of `vio` given as
+`--set`-style config overrides (for example the fixed-lag smoother).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vio.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[2]
+# A real drone trajectory (EuRoC V1_01 ground truth) driving the simulator: "trajectories from files".
+EUROC_GT_FILE = ROOT.parent / "shared" / "data" / "euroc_v1_01" / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+
+
+@dataclass(frozen=True)
+class Case:
+    scenario: str  # orbit | figure8 | room | a trajectory file path
+    seed: int
+    imu: str  # phone | tactical | ideal
+    duration_s: float  # capture length, s
+
+    @property
+    def key(self) -> str:
+        """File-system name of the cached capture (scenario files are named by their stem)."""
+        name = Path(self.scenario).stem if ("/" in self.scenario or "." in self.scenario) else self.scenario
+        return f"{name}_{self.imu}_s{self.seed}_{self.duration_s:g}s"
+
+    @property
+    def label(self) -> str:
+        """Scenario name as shown in tables."""
+        return Path(self.scenario).stem if "/" in self.scenario else self.scenario
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str  # the `method` column of results.json
+    kind: str  # imu_only | vio (vio also yields `batch` when refine is on) | vision_only
+    overrides: tuple[str, ...] = ()  # `section.key=value` config overrides
+    refine: bool = False  # also produce the batch optimum (row `batch`) from the same run
+
+
+@dataclass(frozen=True)
+class Suite:
+    name: str
+    cases: tuple[Case, ...]
+    methods: tuple[Method, ...]
+    notes: str = ""
+    plots: bool = field(default=True)
+
+
+IMU_ONLY = Method("imu_only", "imu_only")
+VIO_AND_BATCH = Method("vio", "vio", refine=True)
+VIO = Method("vio", "vio")
+VISION_ONLY = Method("vision_only", "vision_only")
+FIXED_LAG = Method("vio_lag3s", "vio", ("backend.smoother=fixed_lag", "backend.lag_s=3.0"))
+
+
+def _grid(scenarios: list[str], imus: list[str], seeds: list[int], duration_s: float) -> tuple[Case, ...]:
+    return tuple(Case(s, seed, imu, duration_s) for s, imu, seed in itertools.product(scenarios, imus, seeds))
+
+
+def get_suite(name: str) -> Suite:
+    """The named suite: `tiny` (tests), `quick` (under 15 min on 2 cores), `full` (the Monte-Carlo run)."""
+    if name == "tiny":
+        return Suite("tiny", (Case("orbit", 0, "phone", 4.0),), (IMU_ONLY, VIO), "test-only", plots=True)
+    if name == "quick":
+        cases = _grid(["orbit", "figure8", "room"], ["phone"], [0], 20.0)
+        cases += (Case("orbit", 1, "phone", 20.0), Case("orbit", 0, "tactical", 20.0))
+        return Suite("quick", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY), "5 captures of 20 s")
+    if name == "full":
+        cases = _grid(["orbit", "figure8", "room"], ["phone", "tactical"], [0, 1, 2, 3, 4], 60.0)
+        if EUROC_GT_FILE.exists():
+            cases += _grid([str(EUROC_GT_FILE)], ["phone"], [0, 1, 2], 60.0)
+        return Suite("full", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY, FIXED_LAG), "30-33 captures of 60 s")
+    raise ConfigError(f"unknown benchmark suite {name!r}; known: tiny, quick, full")
