@@ -1,0 +1,106 @@
+"""Grid-bucketed Shi-Tomasi corner detection with sub-pixel refinement.
+
+All coordinates are pixels of the image the corners are detected in (the distorted camera image), x right,
+y down, origin at the centre of the top-left pixel (OpenCV's convention).
+
+The minimum-eigenvalue (Shi-Tomasi) response is computed once for the whole image; candidates are its 3x3 local
+maxima above `quality_level` times the strongest response. They are accepted strongest first, subject to
+(1) a per-cell quota of a `grid_rows` x `grid_cols` grid, so that features spread over the image instead of
+piling up on the most textured patch, (2) `min_distance_px` from every existing track and every accepted corner,
+(3) `border_px` from the image border. When the quotas leave the target unmet (texture only in part of the image),
+a second pass fills up from the remaining candidates without quotas.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from vio.config import TrackerConfig
+
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+_MAX_CANDIDATES = 20000  # strongest local maxima considered; more only costs time
+
+
+def occupancy_mask(shape: tuple[int, int], uv: np.ndarray, radius_px: float, border_px: int) -> np.ndarray:
+    """(H, W) uint8 mask: 255 where a new corner may go, 0 near the border and within `radius_px` of any uv."""
+    h, w = shape
+    mask = np.zeros((h, w), np.uint8)
+    b = max(int(border_px), 0)
+    if h > 2 * b and w > 2 * b:
+        mask[b : h - b, b : w - b] = 255
+    r = max(int(round(radius_px)), 1)
+    for x, y in np.asarray(uv, np.float64).reshape(-1, 2):
+        cv2.circle(mask, (int(round(x)), int(round(y))), r, 0, -1)
+    return mask
+
+
+def cell_index(uv: np.ndarray, shape: tuple[int, int], rows: int, cols: int) -> np.ndarray:
+    """(N,) int grid-cell index (row-major) of each (N, 2) pixel position."""
+    h, w = shape
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    c = np.clip((uv[:, 0] * cols / w).astype(np.int64), 0, cols - 1)
+    r = np.clip((uv[:, 1] * rows / h).astype(np.int64), 0, rows - 1)
+    return r * cols + c
+
+
+def detect_corners(
+    gray: np.ndarray, existing_uv: np.ndarray, num_wanted: int, cfg: TrackerConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Detect up to `num_wanted` new corners away from `existing_uv` (N, 2) px.
+
+    Returns ((M, 2) float64 px sub-pixel positions, (M,) float64 Shi-Tomasi responses), strongest first within
+    each pass. A featureless image gives M = 0.
+    """
+    empty = np.zeros((0, 2)), np.zeros(0)
+    if num_wanted <= 0 or gray.size == 0:
+        return empty
+    shape = gray.shape[:2]
+    eig = cv2.cornerMinEigenVal(gray, blockSize=3, ksize=3)
+    peak = float(eig.max())
+    if not np.isfinite(peak) or peak <= 1e-7:
+        return empty
+    mask = occupancy_mask(shape, existing_uv, cfg.min_distance_px, cfg.border_px)
+    local_max = eig >= cv2.dilate(eig, np.ones((3, 3), np.uint8))
+    cand = local_max & (eig > cfg.quality_level * peak) & (mask > 0)
+    ys, xs = np.nonzero(cand)
+    if xs.size == 0:
+        return empty
+    resp = eig[ys, xs]
+    order = np.argsort(-resp, kind="stable")[:_MAX_CANDIDATES]
+    xs, ys, resp = xs[order], ys[order], resp[order]
+
+    ncells = cfg.grid_rows * cfg.grid_cols
+    per_cell = int(np.ceil(cfg.max_features / ncells))
+    existing_cells = cell_index(existing_uv, shape, cfg.grid_rows, cfg.grid_cols)
+    free = per_cell - np.bincount(existing_cells, minlength=ncells)
+    cells = cell_index(np.column_stack([xs, ys]), shape, cfg.grid_rows, cfg.grid_cols)
+
+    r = max(int(round(cfg.min_distance_px)), 1)
+    taken = np.zeros(xs.size, bool)
+    accepted: list[int] = []
+    for use_quota in (True, False):
+        for i in range(xs.size):
+            if len(accepted) >= num_wanted:
+                break
+            if taken[i] or (use_quota and free[cells[i]] <= 0):
+                continue
+            x, y = int(xs[i]), int(ys[i])
+            if mask[y, x] == 0:
+                continue
+            taken[i] = True
+            accepted.append(i)
+            free[cells[i]] -= 1
+            cv2.circle(mask, (x, y), r, 0, -1)
+    if not accepted:
+        return empty
+    idx = np.asarray(accepted)
+    pts = np.column_stack([xs[idx], ys[idx]]).astype(np.float32).reshape(-1, 1, 2)
+    win = max(int(cfg.subpix_window), 1)
+    if min(shape) > 2 * win + 5:
+        cv2.cornerSubPix(gray, pts, (win, win), (-1, -1), _SUBPIX_CRITERIA)
+    uv = pts.reshape(-1, 2).astype(np.float64)
+    h, w = shape
+    b = cfg.border_px
+    inside = (uv[:, 0] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] >= b) & (uv[:, 1] <= h - 1 - b)
+    return uv[inside], resp[idx][inside].astype(np.float64)

@@ -1,0 +1,183 @@
+"""Frame-to-frame feature tracking: pyramidal KLT, forward-backward check, essential-matrix outlier rejection.
+
+Pixel coordinates are in the *distorted* image (what the camera delivered), x right, y down. The geometric check
+works on undistorted normalized bearings (`CameraCalib.undistort_to_normalized`): an essential matrix is fitted
+with OpenCV's USAC (MAGSAC++ by default) and the pixel threshold is divided by the mean focal length. When the
+median flow is below `essential_min_flow_px` the two views have (almost) no parallax, the essential matrix is
+degenerate and the check is skipped; the forward-backward check still applies.
+
+Each call to `track` returns every live track: survivors of the previous frame first (in their previous order),
+then new detections. Track ids are int64, start at 0 and are never reused.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import numpy as np
+
+from frontend.detection import detect_corners
+from vio.config import TrackerConfig
+from vio.errors import CalibrationError, CaptureError, ConfigError
+from vio.records import CameraCalib, FeatureTracks, Frame
+
+log = logging.getLogger(__name__)
+
+_ESSENTIAL_METHODS = {
+    "usac_magsac": cv2.USAC_MAGSAC,
+    "usac_accurate": cv2.USAC_ACCURATE,
+    "usac_default": cv2.USAC_DEFAULT,
+    "usac_prosac": cv2.USAC_PROSAC,
+    "ransac": cv2.RANSAC,
+    "lmeds": cv2.LMEDS,
+    "none": None,
+}
+_MIN_POINTS_ESSENTIAL = 8  # fewer correspondences than this: no geometric check
+_KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+TIMING_SECTIONS = ("klt", "fb_check", "ransac", "detect")
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 grayscale from a grayscale or BGR/BGRA uint8 image."""
+    if image.ndim == 2:
+        return image if image.dtype == np.uint8 else np.clip(image, 0, 255).astype(np.uint8)
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(image.astype(np.uint8, copy=False), code)
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0].astype(np.uint8, copy=False)
+    raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {image.shape}")
+
+
+class FeatureTracker:
+    """Tracks corners of one camera through consecutive frames (call `track` once per frame, in time order)."""
+
+    def __init__(self, camera: CameraCalib, cfg: TrackerConfig) -> None:
+        if cfg.essential_method not in _ESSENTIAL_METHODS:
+            raise ConfigError(
+                f"config tracker.essential_method: {cfg.essential_method!r} is not one of "
+                f"{', '.join(_ESSENTIAL_METHODS)}"
+            )
+        if cfg.max_features < 0 or cfg.grid_rows < 1 or cfg.grid_cols < 1 or cfg.klt_window < 3:
+            raise ConfigError("config tracker: max_features >= 0, grid_rows/grid_cols >= 1, klt_window >= 3 required")
+        self.camera = camera
+        self.cfg = cfg
+        self._win = (int(cfg.klt_window), int(cfg.klt_window))
+        self._focal_px = 0.5 * (camera.fx + camera.fy)
+        self._prev_gray: np.ndarray | None = None  # the previous image (OpenCV's Python API takes no pyramids)
+        self._prev_t_ns: int | None = None
+        self._uv = np.zeros((0, 2))  # (N, 2) px, distorted, of the last returned tracks
+        self._ids = np.zeros(0, np.int64)
+        self._ages = np.zeros(0, np.int64)
+        self._next_id = 0
+        self.num_frames = 0
+        self.timings_s = dict.fromkeys(TIMING_SECTIONS, 0.0)  # accumulated wall time per section, s
+        self.stats = {"fb_rejected": 0, "essential_rejected": 0, "essential_skipped": 0, "detected": 0}
+
+    def ages(self) -> np.ndarray:
+        """(N,) int64: for each track last returned, the number of frames it has been seen in (1 = new)."""
+        return self._ages.copy()
+
+    def reset(self) -> None:
+        """Forget all tracks (ids keep counting up, so they stay unique)."""
+        self._prev_gray = None
+        self._uv = np.zeros((0, 2))
+        self._ids = np.zeros(0, np.int64)
+        self._ages = np.zeros(0, np.int64)
+
+    def _tick(self, section: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        self.timings_s[section] += t1 - t0
+        return t1
+
+    def track(self, frame: Frame) -> FeatureTracks:
+        """Track the previous frame's features into `frame`, drop outliers, top up with new corners."""
+        gray = to_gray(frame.image)
+        h, w = gray.shape
+        if (w, h) != (self.camera.width, self.camera.height):
+            raise CalibrationError(
+                f"frame t_ns={frame.t_ns}: image is {w}x{h} px but the camera calibration says "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        if self._prev_t_ns is not None and frame.t_ns <= self._prev_t_ns:
+            raise CaptureError(f"frame t_ns={frame.t_ns} is not after the previous frame ({self._prev_t_ns})")
+        if self._prev_gray is not None and self._ids.size:
+            self._follow(gray)
+        t0 = time.perf_counter()
+        want = self.cfg.max_features - self._ids.size
+        if want > 0:
+            new_uv, _ = detect_corners(gray, self._uv, want, self.cfg)
+            n = new_uv.shape[0]
+            self._uv = np.vstack([self._uv, new_uv])
+            self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + n, dtype=np.int64)])
+            self._ages = np.concatenate([self._ages, np.ones(n, np.int64)])
+            self._next_id += n
+            self.stats["detected"] += n
+        self._tick("detect", t0)
+        self._prev_gray = gray
+        self._prev_t_ns = frame.t_ns
+        self.num_frames += 1
+        return FeatureTracks(int(frame.t_ns), self._ids.copy(), self._uv.copy(), int(frame.cam_id))
+
+    def _follow(self, gray: np.ndarray) -> None:
+        """KLT forward, KLT backward (forward-backward check), border check, essential-matrix check."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        p0 = self._uv.astype(np.float32).reshape(-1, 1, 2)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+            self._prev_gray, gray, p0, None, winSize=self._win, maxLevel=cfg.klt_levels, criteria=_KLT_CRITERIA
+        )
+        t0 = self._tick("klt", t0)
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+            gray,
+            self._prev_gray,
+            p1,
+            p0.copy(),
+            winSize=self._win,
+            maxLevel=cfg.klt_levels,
+            criteria=_KLT_CRITERIA,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        uv0 = self._uv
+        uv1 = p1.reshape(-1, 2).astype(np.float64)
+        fb_err = np.linalg.norm(p0b.reshape(-1, 2).astype(np.float64) - uv0, axis=1)
+        h, w = gray.shape
+        b = cfg.border_px
+        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(uv1).all(axis=1)
+        ok &= fb_err <= cfg.fb_threshold_px
+        self.stats["fb_rejected"] += int((~ok).sum())
+        ok &= (uv1[:, 0] >= b) & (uv1[:, 0] <= w - 1 - b) & (uv1[:, 1] >= b) & (uv1[:, 1] <= h - 1 - b)
+        t0 = self._tick("fb_check", t0)
+        idx = np.flatnonzero(ok)
+        inliers = self._essential_inliers(uv0[idx], uv1[idx])
+        self.stats["essential_rejected"] += int((~inliers).sum())
+        idx = idx[inliers]
+        self._tick("ransac", t0)
+        self._uv = uv1[idx]
+        self._ids = self._ids[idx]
+        self._ages = self._ages[idx] + 1
+
+    def _essential_inliers(self, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
+        """(N,) bool inlier mask of an essential matrix fitted to undistorted bearings (all True when skipped)."""
+        n = uv0.shape[0]
+        keep = np.ones(n, bool)
+        method = _ESSENTIAL_METHODS[self.cfg.essential_method]
+        if method is None or n < _MIN_POINTS_ESSENTIAL:
+            return keep
+        if float(np.median(np.linalg.norm(uv1 - uv0, axis=1))) < self.cfg.essential_min_flow_px:
+            self.stats["essential_skipped"] += 1
+            return keep
+        x0 = self.camera.undistort_to_normalized(uv0)
+        x1 = self.camera.undistort_to_normalized(uv1)
+        thr = self.cfg.ransac_threshold_px / self._focal_px
+        try:
+            E, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=method, prob=0.999, threshold=thr)
+        except cv2.error as exc:  # degenerate configurations make some solvers throw
+            log.debug("essential matrix failed (%s); keeping all %d tracks", exc.msg if hasattr(exc, "msg") else exc, n)
+            return keep
+        if E is None or mask is None or mask.size != n:
+            self.stats["essential_skipped"] += 1
+            return keep
+        return mask.ravel().astype(bool)
