@@ -1,0 +1,186 @@
+"""The rerun sink: a saved recording verifies and holds every archetype; --serve binds only to the loopback address.
+
+Records are built from a real capture: real images, features tracked by OpenCV's pyramidal LK on its pixels (ages
+counted here), keyframe states and landmarks from the capture's ground truth. Run this file as a script for the
+sink's logging cost: `.venv/bin/python tests/test_viz.py --bench [CAPTURE]`.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+from conftest import shared_path  # noqa: E402
+
+from vio.capture import Capture, read_asl  # noqa: E402
+from vio.records import StateEstimate  # noqa: E402
+
+RERUN = ROOT / ".venv" / "bin" / "rerun"
+KEYFRAME_EVERY = 3  # frames
+N_FRAMES = 40
+EXPECTED = ["EncodedImage", "Pinhole", "Transform3D", "Points2D", "Points3D", "LineStrips3D", "Scalars"]
+
+
+def _gt_at(capture: Capture, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest ground-truth sample: world_T_body (4, 4), v_world, b_w, b_a."""
+    gt = capture.ground_truth
+    i = int(np.clip(np.searchsorted(gt.t_ns, t_ns), 0, len(gt) - 1))
+    return gt.world_T_body(i), gt.v_world[i], gt.b_w[i], gt.b_a[i]
+
+
+def feed(sink, capture: Capture, max_frames: int | None = None, timings: list[float] | None = None) -> int:
+    """Drive `sink` with the capture's records the way the pipeline does; returns the number of keyframes."""
+    cam = capture.camera
+    sink.on_start(cam, capture.imu, capture.ground_truth)
+    prev, pts, ids, ages = None, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros(0, int)
+    next_id, landmarks, k = 0, {}, 0
+    for n, frame in enumerate(capture.frames(0, max_frames)):
+        t0 = time.perf_counter()
+        img = frame.image
+        if prev is not None and len(pts):
+            new, st, _ = cv2.calcOpticalFlowPyrLK(prev, img, pts, None, winSize=(21, 21), maxLevel=3)
+            keep = st.ravel() == 1
+            pts, ids, ages = new[keep], ids[keep], ages[keep] + 1
+        if len(pts) < 120:
+            mask = np.full(img.shape[:2], 255, np.uint8)
+            for u, v in pts:
+                cv2.circle(mask, (int(u), int(v)), 15, 0, -1)
+            c = cv2.goodFeaturesToTrack(img, 150 - len(pts), 0.01, 15, mask=mask)
+            if c is not None:
+                c = c.reshape(-1, 2)
+                pts = np.vstack([pts, c]).astype(np.float32)
+                ids = np.concatenate([ids, np.arange(next_id, next_id + len(c))])
+                ages = np.concatenate([ages, np.zeros(len(c), int)])
+                next_id += len(c)
+        prev = img
+        t_sink = time.perf_counter()
+        sink.on_frame(frame, ids.copy(), pts.astype(np.float64), ages.copy())
+        spent = time.perf_counter() - t_sink
+        if n % KEYFRAME_EVERY == 0:
+            world_T_body, v, bw, ba = _gt_at(capture, frame.t_ns)
+            world_T_cam = world_T_body @ cam.body_T_cam
+            rays = np.column_stack([cam.undistort_to_normalized(pts), np.ones(len(pts))])
+            depth = 2.0 + (ids % 7) * 0.3  # metres, varied per track so the cloud has relief
+            p_world = (world_T_cam[:3, :3] @ (rays * depth[:, None]).T).T + world_T_cam[:3, 3]
+            for j, p in zip(ids.tolist(), p_world, strict=True):
+                landmarks.setdefault(j, p)
+            lm_ids = np.array(sorted(landmarks), np.int64)
+            est = StateEstimate(
+                k, frame.t_ns, world_T_body, v, bw, ba, lm_ids, np.array([landmarks[j] for j in lm_ids])
+            )
+            stats = {"solve_ms": 5.0 + k % 4, "reproj_px_median": 0.4 + 0.01 * k, "num_landmarks": len(lm_ids)}
+            t_sink = time.perf_counter()
+            sink.on_estimate(est, stats)
+            spent += time.perf_counter() - t_sink
+            k += 1
+        if timings is not None:
+            timings.append(spent)
+        del t0
+    return k
+
+
+@pytest.fixture(scope="module")
+def euroc() -> Capture:
+    return read_asl(shared_path("euroc_v1_01"))
+
+
+@pytest.fixture(scope="module")
+def recording(euroc, tmp_path_factory) -> Path:
+    from vio.viz import make_rerun_sink
+
+    rrd = tmp_path_factory.mktemp("viz") / "run.rrd"
+    sink = make_rerun_sink(rrd=rrd)
+    assert not rrd.exists()  # only renamed into place by close()
+    assert feed(sink, euroc, max_frames=N_FRAMES) > 5
+    sink.close()
+    return rrd
+
+
+def test_rrd_verifies(recording):
+    res = subprocess.run([str(RERUN), "rrd", "verify", str(recording)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert not list(recording.parent.glob(".*.tmp"))
+
+
+CHUNK_LINE = re.compile(r"with (\d+) rows .* - (/\S*) - data columns: \[([^\]]*)\]")
+
+
+def chunk_summary(rrd: Path) -> dict[tuple[str, str], int]:
+    """(entity path, archetype) -> number of rows logged, parsed from `rerun rrd print` (recording and blueprint)."""
+    res = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    rows: dict[tuple[str, str], int] = {}
+    for m in CHUNK_LINE.finditer(res.stdout):
+        for arch in {c.split(":")[0] for c in m.group(3).split()}:
+            rows[(m.group(2), arch)] = rows.get((m.group(2), arch), 0) + int(m.group(1))
+    return rows
+
+
+def test_rrd_holds_every_archetype(recording, euroc):
+    from vio import viz_blueprint as bp
+
+    rows = chunk_summary(recording)
+    archetypes = {arch for _, arch in rows}
+    assert set(EXPECTED) <= archetypes, f"missing: {set(EXPECTED) - archetypes}"
+    n_kf = -(-N_FRAMES // KEYFRAME_EVERY)
+    assert rows[("/" + bp.IMAGE, "EncodedImage")] == N_FRAMES
+    assert rows[("/" + bp.FEATURES, "Points2D")] == N_FRAMES
+    assert rows[("/" + bp.IMAGE, "Pinhole")] == 1  # static
+    assert rows[("/" + bp.CAMERA, "Transform3D")] == n_kf
+    assert rows[("/" + bp.TRAJ_EST, "LineStrips3D")] == n_kf
+    assert rows[("/" + bp.TRAJ_GT, "LineStrips3D")] == 1  # static
+    assert rows[("/" + bp.LANDMARKS, "Points3D")] == n_kf
+    assert rows[("/" + bp.SOLVE_MS, "Scalars")] == n_kf
+    assert rows[("/" + bp.REPROJ_PX, "Scalars")] == n_kf
+    assert rows[("/" + bp.PLOT_GYRO, "Scalars")] == len(euroc.imu)  # the whole stream, one send_columns
+    assert rows[("/" + bp.PLOT_VEL + "/" + bp.GT, "Scalars")] == len(euroc.ground_truth)
+    assert rows[("/" + bp.PLOT_VEL + "/" + bp.EST, "Scalars")] == n_kf
+    assert ("/" + bp.WORLD, "ViewCoordinates") in rows
+
+
+def test_default_blueprint_is_in_the_recording(recording):
+    res = subprocess.run(
+        [str(RERUN), "rrd", "print", "-v", str(recording)], capture_output=True, text=True, timeout=120
+    )
+    assert "Blueprint" in res.stdout
+    assert res.stdout.count("ViewBlueprint:class") >= 10  # 3D, camera and 8 time series views
+
+
+def _listening(pid: int) -> list[tuple[str, int]]:
+    psutil = pytest.importorskip("psutil")
+
+    conns = psutil.Process(pid).net_connections("inet")
+    return [(c.laddr.ip, c.laddr.port) for c in conns if c.status == psutil.CONN_LISTEN]
+
+
+def test_serve_binds_only_loopback(euroc):
+    import urllib.request
+
+    from vio.viz import make_rerun_sink
+
+    sink = make_rerun_sink(serve=True)
+    viewer = sink.viewer
+    try:
+        assert viewer is not None and viewer.kind == "web"
+        assert viewer.url.startswith(f"http://127.0.0.1:{viewer.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A")
+        feed(sink, euroc, max_frames=6)
+        sink.close()
+        listening = _listening(viewer.pid)
+        ports = {port for _, port in listening}
+        assert {viewer.grpc_port, viewer.web_port} <= ports, listening
+        assert all(ip == "127.0.0.1" for ip, _ in listening), listening
+        with urllib.request.urlopen(viewer.url, timeout=10) as r:  # the web viewer page is served
+            assert r.status == 200 and b"<html" in r.read().lower()
+        assert viewer.process.poll() is None  # still serving the finished run
+    finally:
+        viewer.stop()
+    assert viewer.process.poll() is not None

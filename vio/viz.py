@@ -1,0 +1,190 @@
+"""The rerun viewer sink: the one module (with vio.viz_blueprint) that imports rerun. The estimator never draws.
+
+`make_rerun_sink(rrd=..., serve=..., spawn=...)` returns a `RerunSink` (a `vio.sinks.EstimateSink`) that logs on the
+`sensor_time` timeline: the camera (Pinhole + world_T_cam), the current image (downscaled JPEG) with its tracked
+features coloured by track age, the estimated trajectory beside the ground truth, landmarks, IMU signals, velocity,
+biases and solver statistics. Frames: world z-up; camera OpenCV; world_T_cam = world_T_body @ body_T_cam.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import rerun as rr
+
+from vio import viz_blueprint as bp
+from vio.errors import VioError
+from vio.records import CameraCalib, Frame, GroundTruth, ImuSeries, StateEstimate
+from vio.viz_server import ViewerProcess, start_viewer_process
+
+log = logging.getLogger(__name__)
+
+IMAGE_MAX_WIDTH_PX = 400  # images are downscaled to at most this width before JPEG encoding
+JPEG_QUALITY = 75
+AGE_SATURATION_FRAMES = 30  # track age at which the feature colour stops changing
+FEATURE_RADIUS_PX = 2.0  # in the downscaled image
+LANDMARK_RADIUS_M = 0.004
+XYZ_COLORS = np.array([[230, 60, 60], [60, 180, 60], [60, 100, 230]], np.uint8)  # x, y, z series
+GT_XYZ_COLORS = np.array([[240, 160, 160], [160, 220, 160], [160, 180, 240]], np.uint8)  # lighter: ground truth
+EST_COLOR = [255, 140, 0]
+GT_COLOR = [40, 200, 255]
+
+
+def _colormap(values: np.ndarray, lo: float, hi: float, cmap: int) -> np.ndarray:
+    """(N,) floats -> (N, 3) uint8 RGB through an OpenCV colour map, with lo..hi spread over the map."""
+    span = max(hi - lo, 1e-9)
+    idx = np.clip((np.asarray(values, float) - lo) / span * 255.0, 0, 255).astype(np.uint8).reshape(-1, 1)
+    return cv2.applyColorMap(idx, cmap).reshape(-1, 3)[:, ::-1].copy()
+
+
+def _time_column(t_ns: np.ndarray) -> rr.TimeColumn:
+    return rr.TimeColumn(bp.TIMELINE, timestamp=np.asarray(t_ns, np.int64).astype("datetime64[ns]"))
+
+
+class RerunSink:
+    """Logs everything the pipeline reports to one rerun recording stream (file, web viewer and/or native viewer)."""
+
+    def __init__(self, rec: rr.RecordingStream, rrd_tmp: Path | None, rrd: Path | None, viewer: ViewerProcess | None):
+        self.rec = rec
+        self.viewer = viewer  # the loopback server or native viewer we started, if any
+        self._rrd_tmp, self._rrd = rrd_tmp, rrd
+        self._scale = 1.0  # image downscale factor
+        self._body_T_cam = np.eye(4)
+        self._traj: list[np.ndarray] = []
+        self._closed = False
+
+    def _set_time(self, t_ns: int) -> None:
+        self.rec.set_time(bp.TIMELINE, timestamp=np.datetime64(int(t_ns), "ns"))
+
+    def on_start(self, camera: CameraCalib | None, imu: ImuSeries | None, ground_truth: GroundTruth | None) -> None:
+        """Static calibration, the whole IMU stream (one send_columns per signal) and the ground truth if any."""
+        rec = self.rec
+        rec.log(bp.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if camera is not None:
+            self._body_T_cam = np.asarray(camera.body_T_cam, float)
+            self._scale = min(1.0, IMAGE_MAX_WIDTH_PX / camera.width)
+            s = self._scale
+            # rerun puts pixel corners on integers, OpenCV pixel centres: shift by half a pixel, then scale.
+            K = np.array(
+                [[camera.fx * s, 0, (camera.cx + 0.5) * s], [0, camera.fy * s, (camera.cy + 0.5) * s], [0, 0, 1]]
+            )
+            res = [round(camera.width * s), round(camera.height * s)]
+            rec.log(bp.IMAGE, rr.Pinhole(image_from_camera=K, resolution=res, image_plane_distance=0.1), static=True)
+        self._log_series_styles(ground_truth is not None)
+        if imu is not None and len(imu):
+            times = [_time_column(imu.t_ns)]
+            rec.send_columns(bp.PLOT_GYRO, times, rr.Scalars.columns(scalars=imu.gyro).partition([3] * len(imu)))
+            rec.send_columns(bp.PLOT_ACC, times, rr.Scalars.columns(scalars=imu.acc).partition([3] * len(imu)))
+        if ground_truth is not None and len(ground_truth):
+            gt = ground_truth
+            rec.log(bp.TRAJ_GT, rr.LineStrips3D([gt.p_world], colors=[GT_COLOR], radii=[0.003]), static=True)
+            times = [_time_column(gt.t_ns)]
+            lens = [3] * len(gt)
+            for path, values in ((bp.PLOT_VEL, gt.v_world), (bp.PLOT_BIAS_GYRO, gt.b_w), (bp.PLOT_BIAS_ACC, gt.b_a)):
+                rec.send_columns(f"{path}/{bp.GT}", times, rr.Scalars.columns(scalars=values).partition(lens))
+
+    def _log_series_styles(self, with_gt: bool) -> None:
+        xyz = ["x", "y", "z"]
+        for path in (bp.PLOT_GYRO, bp.PLOT_ACC):
+            self.rec.log(path, rr.SeriesLines(colors=XYZ_COLORS, names=xyz, widths=1.0), static=True)
+        for path in (bp.PLOT_VEL, bp.PLOT_BIAS_GYRO, bp.PLOT_BIAS_ACC):
+            names = [f"est {a}" for a in xyz]
+            self.rec.log(f"{path}/{bp.EST}", rr.SeriesLines(colors=XYZ_COLORS, names=names, widths=2.0), static=True)
+            if with_gt:
+                gt_names = [f"gt {a}" for a in xyz]
+                self.rec.log(f"{path}/{bp.GT}", rr.SeriesLines(colors=GT_XYZ_COLORS, names=gt_names), static=True)
+        self.rec.log(bp.SOLVE_MS, rr.SeriesLines(names="solve ms", colors=[200, 120, 0]), static=True)
+        self.rec.log(bp.REPROJ_PX, rr.SeriesLines(names="median px", colors=[150, 0, 200]), static=True)
+        self.rec.log(bp.NUM_LANDMARKS, rr.SeriesLines(names="landmarks", colors=[0, 150, 150]), static=True)
+
+    def on_frame(self, frame: Frame, ids: np.ndarray, uv: np.ndarray, ages: np.ndarray) -> None:
+        """The downscaled JPEG image and its tracked features (distorted px), coloured by age in frames."""
+        self._set_time(frame.t_ns)
+        img = frame.image
+        if self._scale < 1.0:
+            h, w = img.shape[:2]
+            size = (round(w * self._scale), round(h * self._scale))
+            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        ok, jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if ok:
+            self.rec.log(bp.IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        uv_rr = (np.asarray(uv, float).reshape(-1, 2) + 0.5) * self._scale
+        colors = _colormap(ages, 0.0, AGE_SATURATION_FRAMES, cv2.COLORMAP_VIRIDIS)
+        self.rec.log(bp.FEATURES, rr.Points2D(uv_rr, colors=colors, radii=FEATURE_RADIUS_PX))
+
+    def on_estimate(self, estimate: StateEstimate, stats: dict[str, Any]) -> None:
+        """Camera pose, trajectory so far, landmarks, velocity, biases and solver scalars at the keyframe time."""
+        rec = self.rec
+        self._set_time(estimate.t_ns)
+        world_T_body = np.asarray(estimate.world_T_body, float)
+        world_T_cam = world_T_body @ self._body_T_cam
+        rec.log(bp.CAMERA, rr.Transform3D(translation=world_T_cam[:3, 3], mat3x3=world_T_cam[:3, :3]))
+        self._traj.append(world_T_body[:3, 3].copy())
+        rec.log(bp.TRAJ_EST, rr.LineStrips3D([np.array(self._traj)], colors=[EST_COLOR], radii=[0.004]))
+        pts = np.asarray(estimate.landmarks_world, float).reshape(-1, 3)
+        if pts.shape[0]:
+            lo, hi = np.percentile(pts[:, 2], [2, 98])
+            colors = _colormap(pts[:, 2], lo, hi, cv2.COLORMAP_TURBO)
+            rec.log(bp.LANDMARKS, rr.Points3D(pts, colors=colors, radii=LANDMARK_RADIUS_M))
+        else:
+            rec.log(bp.LANDMARKS, rr.Clear(recursive=False))
+        rec.log(f"{bp.PLOT_VEL}/{bp.EST}", rr.Scalars(np.asarray(estimate.v_world, float)))
+        rec.log(f"{bp.PLOT_BIAS_GYRO}/{bp.EST}", rr.Scalars(np.asarray(estimate.bias_gyro, float)))
+        rec.log(f"{bp.PLOT_BIAS_ACC}/{bp.EST}", rr.Scalars(np.asarray(estimate.bias_acc, float)))
+        solve_ms = float(stats.get("solve_ms", estimate.solve_ms))
+        rec.log(bp.SOLVE_MS, rr.Scalars(solve_ms))
+        reproj = stats.get("reproj_px_median")
+        if reproj is not None and np.isfinite(reproj):
+            rec.log(bp.REPROJ_PX, rr.Scalars(float(reproj)))
+        rec.log(bp.NUM_LANDMARKS, rr.Scalars(float(stats.get("num_landmarks", pts.shape[0]))))
+
+    def close(self) -> None:
+        """Flush; finish the .rrd (renamed into place only now, so it is never seen half-written)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.rec.flush()
+        self.rec.disconnect()  # drops the sinks: the file sink writes its footer and closes
+        if self._rrd_tmp is not None and self._rrd is not None:
+            self._rrd_tmp.replace(self._rrd)
+            log.info("rerun recording saved: %s (open with: rerun %s)", self._rrd, self._rrd)
+        if self.viewer is not None and self.viewer.kind == "web":
+            log.info(
+                "the web viewer keeps serving this run at %s (rerun server pid %d; stop it with: kill %d)",
+                self.viewer.url,
+                self.viewer.pid,
+                self.viewer.pid,
+            )
+
+
+def make_rerun_sink(
+    rrd: str | Path | None = None, serve: bool = False, spawn: bool = False, port: int = 0
+) -> RerunSink:
+    """A sink logging to a .rrd file, a loopback web viewer (`serve`, `port` 0: chosen) and/or a native viewer.
+
+    `serve` starts `rerun --serve-web` bound to 127.0.0.1 only and logs the URL to open in a browser.
+    """
+    rec = rr.RecordingStream(bp.APP_ID, send_properties=False)
+    rec.set_log_time_enabled(False)
+    rec.set_log_tick_enabled(False)
+    sinks: list[Any] = []
+    rrd_path = rrd_tmp = None
+    if rrd is not None:
+        rrd_path = Path(rrd)
+        rrd_path.parent.mkdir(parents=True, exist_ok=True)
+        rrd_tmp = rrd_path.with_name(f".{rrd_path.name}.tmp")
+        sinks.append(rr.FileSink(str(rrd_tmp)))
+    viewer = None
+    if serve or spawn:
+        viewer = start_viewer_process("web" if serve else "native", web_port=port)
+        sinks.append(rr.GrpcSink(viewer.grpc_url))
+        if serve:
+            log.info("rerun web viewer (loopback only): open %s", viewer.url)
+    if not sinks:
+        raise VioError("make_rerun_sink: nothing to log to (give rrd, serve or spawn)")
+    rec.set_sinks(*sinks, default_blueprint=bp.default_blueprint())
+    return RerunSink(rec, rrd_tmp, rrd_path, viewer)
