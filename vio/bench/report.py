@@ -156,13 +156,67 @@ def markdown(rows: list[dict[str, Any]], title: str = "", wall_s: float | None =
     return "\n".join(lines) + "\n"
 
 
+def collect_rpe(out: Path) -> list[dict[str, Any]]:
+    """RPE rows (scenario, imu, seed, method, length, trans_mean_m, rot_mean_deg) from runs/*/*/metrics_*.json.
+
+    RPE is taken under the same alignment as the drift figure (it only matters for the Sim3 scale of vision_only).
+    """
+    import json
+
+    found = []
+    for p in sorted(Path(out).glob("runs/*/*/metrics_*.json")):
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        row, metrics = data.get("row", {}), data.get("metrics", {})
+        m = metrics.get("posyaw") or metrics.get("sim3") or {}
+        for seg in (m.get("rpe") or {}).values():
+            found.append(
+                {
+                    **{k: row.get(k) for k in ("scenario", "imu", "seed", "method")},
+                    "length_m": seg["length_m"],
+                    "trans_mean_m": seg.get("trans_mean_m"),
+                    "rot_mean_deg": seg.get("rot_mean_deg"),
+                }
+            )
+    return found
+
+
+def rpe_markdown(rpe: list[dict[str, Any]]) -> str:
+    """Median RPE translation (mm) and rotation (deg) per IMU grade, method and segment length."""
+    if not rpe:
+        return ""
+    lengths = sorted({r["length_m"] for r in rpe})
+    groups: dict[tuple[str, str], dict[float, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
+    for r in rpe:
+        groups[(str(r["imu"]), str(r["method"]))][r["length_m"]].append(r)
+    head = " | ".join(f"{x:g} m" for x in lengths)
+    lines = [
+        "",
+        "## Relative pose error (median over captures of the mean per segment length: translation mm / rotation deg)",
+        "",
+        f"| IMU | method | {head} |",
+        "|---|---|" + "---:|" * len(lengths),
+    ]
+    for (imu, meth), by_len in sorted(groups.items(), key=lambda kv: (kv[0][0], _method_rank(kv[0][1]))):
+        cells = []
+        for x in lengths:
+            t = _median([r["trans_mean_m"] for r in by_len.get(x, [])])
+            a = _median([r["rot_mean_deg"] for r in by_len.get(x, [])])
+            cells.append("-" if t is None else f"{_fmt(t, 'rpe_')} / {a:.2f}")
+        lines.append(f"| {imu} | {meth} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def write_reports(
     suite: Any, rows: list[dict[str, Any]], out: Path, wall_s: float | None = None, jobs: int = 0
 ) -> None:
     """results.json, results.md and (unless the suite says not to) plots/ under `out`."""
     clean = [{k: _clean(v) for k, v in r.items()} for r in rows]
     write_json(out / "results.json", {"runs": clean})
-    write_text(out / "results.md", markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs))
+    text = markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs) + rpe_markdown(collect_rpe(out))
+    write_text(out / "results.md", text)
     if getattr(suite, "plots", True):
         from vio.bench.plots import make_plots
 

@@ -86,6 +86,8 @@ def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dic
     from vio.capture import read_asl
     from vio.trajio import Trajectory
 
+    if method.kind not in ("imu_only", "vio", "vision_only"):
+        raise ValueError(f"unknown method kind {method.kind!r}")
     cap = read_asl(capture)
     if cap.ground_truth is None:
         raise ValueError(f"{capture}: no ground truth to score against")
@@ -96,10 +98,8 @@ def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dic
         outputs = methods.run_imu_only(capture, out)
     elif method.kind == "vio":
         outputs = methods.run_vio(capture, out, method.name, tuple(method.overrides), method.refine)
-    elif method.kind == "vision_only":
-        outputs = methods.run_vision_only(capture, out, tuple(method.overrides))
     else:
-        raise ValueError(f"unknown method kind {method.kind!r}")
+        outputs = methods.run_vision_only(capture, out, tuple(method.overrides))
     rows = []
     for o in outputs:
         try:
