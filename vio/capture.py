@@ -186,6 +186,14 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
     return cap
 
 
+def encode_png(image: np.ndarray) -> bytes:
+    """Lossless PNG bytes of an image (compression level fixed, so the bytes are reproducible)."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise CaptureError("PNG encoding failed")
+    return buf.tobytes()
+
+
 class AslWriter:
     """Writes an ASL capture into a temporary folder and renames it into place on `close()`.
 
@@ -224,10 +232,13 @@ class AslWriter:
         """Write one image as `<t_ns>.png` (lossless; PNG compression level fixed for determinism)."""
         if self._frames and t_ns <= self._frames[-1]:
             raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
-        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        if not ok:
-            raise CaptureError("PNG encoding failed", self.root)
-        (self.mav0 / "cam0" / "data" / f"{int(t_ns)}.png").write_bytes(buf.tobytes())
+        self.add_png(t_ns, encode_png(image))
+
+    def add_png(self, t_ns: int, png: bytes) -> None:
+        """Write one already encoded PNG image as `<t_ns>.png` (e.g. encoded in a worker process)."""
+        if self._frames and t_ns <= self._frames[-1]:
+            raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
+        (self.mav0 / "cam0" / "data" / f"{int(t_ns)}.png").write_bytes(png)
         self._frames.append(int(t_ns))
 
     def write_groundtruth(self, gt: GroundTruth) -> None:

@@ -1,0 +1,160 @@
+"""The simulator's public functions: `load_scenario` (the oracle other tests use) and `simulate` (writes a capture).
+
+Seeds are split by stream with `np.random.SeedSequence(seed).spawn(4)`: trajectory (motion phases), IMU (noise
+and biases), image noise, scene (textures). The same seed gives byte-identical files.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vio.capture import AslWriter
+from vio.errors import SimulationError
+from vio.records import CameraCalib, ImuCalib
+from vio.sim import rig, scenarios
+from vio.sim.imu import grade_by_name, imu_calib, simulate_imu
+from vio.sim.scene import Scene
+from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
+
+log = logging.getLogger(__name__)
+
+BUILTIN = ("orbit", "figure8", "room")
+DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0}
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything that defines a simulated capture except the measurement noise draws."""
+
+    name: str  # "orbit", "figure8", "room", or the trajectory file path
+    seed: int
+    trajectory: Trajectory  # body (IMU) motion; `.sample(t_s)` with t_s in s since t0_ns
+    scene: Scene
+    camera: CameraCalib
+    imu_calib: ImuCalib
+    imu_grade: str
+    t0_ns: int  # time of t_s = 0, ns
+    duration_s: float
+    camera_rate_hz: float
+    imu_rate_hz: float
+
+    def frame_times_ns(self) -> np.ndarray:
+        """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples)."""
+        n = int(np.floor(self.duration_s * self.camera_rate_hz + 1e-9))
+        return np.int64(self.t0_ns) + np.round(np.arange(n) * (1e9 / self.camera_rate_hz)).astype(np.int64)
+
+
+def _streams(seed: int) -> list[np.random.SeedSequence]:
+    if seed < 0:
+        raise SimulationError(f"seed must be non-negative, got {seed}")
+    return np.random.SeedSequence(seed).spawn(4)
+
+
+def load_scenario(
+    scenario: str | os.PathLike[str], seed: int = 0, duration_s: float | None = None, imu_grade_name: str = "phone"
+) -> Scenario:
+    """Build a scenario by name (`orbit`, `figure8`, `room`) or from a trajectory file (EuRoC CSV or TUM)."""
+    ss_traj, _, _, ss_scene = _streams(seed)
+    rng = np.random.default_rng(ss_traj)
+    texture_seed = int(ss_scene.generate_state(1)[0])
+    camera = rig.default_camera()
+    name = str(scenario)
+    t0_ns = rig.T0_NS
+    if name in BUILTIN:
+        span = None
+        if name == "room":
+            scene = scenarios.room_scene(texture_seed)
+            cam_fn = scenarios.room_camera(rng)
+        else:
+            scene = scenarios.tabletop_scene(texture_seed)
+            centre = scene.object_corners_world().mean(axis=0)
+            make = scenarios.orbit_camera if name == "orbit" else scenarios.figure8_camera
+            cam_fn = make(rng, centre)
+        default_s = DEFAULT_DURATION_S[name]
+        traj_fn = camera_driven(cam_fn, camera.body_T_cam)
+    else:
+        path = Path(name)
+        if not path.is_file():
+            raise SimulationError(
+                f"unknown scenario '{name}': choose orbit, figure8, room, or a trajectory file (EuRoC CSV or TUM)"
+            )
+        traj0, t_first_ns, scene = _from_file(path, texture_seed)
+        span = traj0.duration_s
+        default_s = span
+        traj_fn = traj0.pose
+        if t_first_ns > 10**17:
+            t0_ns = t_first_ns
+    dur = default_s if duration_s is None else float(duration_s)
+    if not np.isfinite(dur) or dur <= 0:
+        raise SimulationError(f"duration must be positive, got {duration_s}")
+    if span is not None and dur > span + 1e-9:
+        raise SimulationError(f"{name}: duration {dur:g} s is longer than the trajectory ({span:.3f} s)")
+    grade = grade_by_name(imu_grade_name)
+    return Scenario(
+        name=name,
+        seed=seed,
+        trajectory=Trajectory(traj_fn, dur),
+        scene=scene,
+        camera=camera,
+        imu_calib=imu_calib(grade, rig.IMU_RATE_HZ),
+        imu_grade=grade.name,
+        t0_ns=int(t0_ns),
+        duration_s=dur,
+        camera_rate_hz=rig.CAMERA_RATE_HZ,
+        imu_rate_hz=rig.IMU_RATE_HZ,
+    )
+
+
+def _from_file(path: Path, texture_seed: int) -> tuple[Trajectory, int, Scene]:
+    from vio.trajio import read_trajectory
+
+    traj = read_trajectory(path)
+    if len(traj) < 10:
+        raise SimulationError(f"{path}: needs at least 10 poses to fit a spline, found {len(traj)}")
+    span_s = (int(traj.t_ns[-1]) - int(traj.t_ns[0])) * 1e-9
+    if span_s < 1.0:
+        raise SimulationError(f"{path}: trajectory spans {span_s:.3f} s; at least 1 s is needed")
+    gaps = np.diff(traj.t_ns) * 1e-9
+    if gaps.max() > 1.0:
+        i = int(np.argmax(gaps))
+        raise SimulationError(f"{path}: {gaps[i]:.2f} s gap between poses {i} and {i + 1}; the spline needs < 1 s")
+    spline, t_first_ns = spline_trajectory(traj.t_ns, traj.p_world, traj.q_wxyz)
+    return spline, t_first_ns, scenarios.trajectory_room_scene(traj.p_world, texture_seed)
+
+
+def simulate(
+    scenario: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    seed: int = 0,
+    duration_s: float | None = None,
+    imu_grade: str = "phone",
+    overwrite: bool = False,
+    images: bool = True,
+    workers: int | None = None,
+) -> Path:
+    """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
+
+    `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
+    `workers` render processes (default: 2, or 1 for short captures).
+    """
+    from vio.sim.writer import write_capture
+
+    sc = load_scenario(scenario, seed=seed, duration_s=duration_s, imu_grade_name=imu_grade)
+    _, ss_imu, ss_img, _ = _streams(seed)
+    imu, gt = simulate_imu(
+        sc.trajectory,
+        sc.t0_ns,
+        sc.duration_s,
+        sc.imu_rate_hz,
+        grade_by_name(sc.imu_grade),
+        np.random.default_rng(ss_imu),
+    )
+    with AslWriter(out, overwrite=overwrite) as writer:
+        write_capture(writer, sc, imu, gt, images=images, image_seed=ss_img, workers=workers)
+    log.info("simulated %s (%.1f s, seed %d, %s IMU) into %s", sc.name, sc.duration_s, seed, sc.imu_grade, out)
+    return Path(out)

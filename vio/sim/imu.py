@@ -1,0 +1,89 @@
+"""IMU measurement model and grades (Kalibr noise parameters) plus the ground-truth states at IMU rate.
+
+gyro_k = omega_body(t_k) + b_w(t_k) + n_w,   n_w ~ N(0, (gyroscope_noise_density * sqrt(rate))^2)
+acc_k  = world_R_body(t_k)^T (a_world(t_k) - g) + b_a(t_k) + n_a, g = (0, 0, -9.81) m/s^2
+b_{k+1} = b_k + random_walk * sqrt(dt) * N(0, 1)   (per axis, gyro and accelerometer)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vio.errors import SimulationError
+from vio.geometry import R_to_quat_wxyz
+from vio.records import GRAVITY_WORLD, GroundTruth, ImuCalib, ImuSeries
+from vio.sim.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class ImuGrade:
+    """Noise of one IMU grade; densities in Kalibr units, initial biases drawn per axis with a random sign."""
+
+    name: str
+    gyro_noise: float  # rad/s/sqrt(Hz)
+    acc_noise: float  # m/s^2/sqrt(Hz)
+    gyro_walk: float  # rad/s^2/sqrt(Hz)
+    acc_walk: float  # m/s^3/sqrt(Hz)
+    gyro_bias0: float  # typical initial gyro bias magnitude per axis, rad/s
+    acc_bias0: float  # typical initial accelerometer bias magnitude per axis, m/s^2
+    noisy: bool = True  # False: the measurements are exact (the calibration still carries small densities)
+
+
+IMU_GRADES: dict[str, ImuGrade] = {
+    # Exact measurements; the YAML carries small positive densities so that estimators stay well-posed.
+    "ideal": ImuGrade("ideal", 1e-5, 1e-4, 1e-7, 1e-6, 0.0, 0.0, noisy=False),
+    # A phone MEMS IMU (e.g. BMI160/ICM-20600 class as calibrated by Kalibr users).
+    "phone": ImuGrade("phone", 0.002, 0.015, 5e-5, 1e-3, 0.005, 0.05),
+    # A tactical/industrial MEMS IMU (ADIS16448 class, the EuRoC sensor, with steadier biases).
+    "tactical": ImuGrade("tactical", 1.7e-4, 2.0e-3, 2e-6, 5e-5, 5e-4, 0.01),
+}
+
+
+def grade_by_name(name: str) -> ImuGrade:
+    try:
+        return IMU_GRADES[name]
+    except KeyError:
+        raise SimulationError(f"unknown IMU grade '{name}' (choose from {', '.join(IMU_GRADES)})") from None
+
+
+def imu_calib(grade: ImuGrade, rate_hz: float) -> ImuCalib:
+    return ImuCalib(grade.gyro_noise, grade.acc_noise, grade.gyro_walk, grade.acc_walk, rate_hz)
+
+
+def simulate_imu(
+    traj: Trajectory,
+    t0_ns: int,
+    duration_s: float,
+    rate_hz: float,
+    grade: ImuGrade,
+    rng: np.random.Generator,
+) -> tuple[ImuSeries, GroundTruth]:
+    """IMU samples at t0_ns + k / rate_hz for t in [0, duration_s], and ground truth at the same times.
+
+    Times are integer ns (k * 1e9 / rate rounded); the ground truth carries the true biases of each sample.
+    """
+    n = int(np.floor(duration_s * rate_hz + 1e-9)) + 1
+    k = np.arange(n, dtype=np.int64)
+    offset_ns = np.round(k * (1e9 / rate_hz)).astype(np.int64)
+    t_s = offset_ns.astype(np.float64) * 1e-9
+    s = traj.sample(t_s)
+    gyro = s.omega_body.copy()
+    acc = np.einsum("nji,nj->ni", s.world_R_body, s.a_world - GRAVITY_WORLD)
+    b_w = np.zeros((n, 3))
+    b_a = np.zeros((n, 3))
+    if grade.noisy:
+        dt = 1.0 / rate_hz
+        sign = rng.choice([-1.0, 1.0], size=(2, 3))
+        mag = rng.uniform(0.5, 1.5, size=(2, 3))
+        bw0 = sign[0] * mag[0] * grade.gyro_bias0
+        ba0 = sign[1] * mag[1] * grade.acc_bias0
+        steps = rng.standard_normal((n, 12))
+        b_w = bw0 + np.vstack([np.zeros((1, 3)), np.cumsum(steps[:-1, 0:3] * grade.gyro_walk * np.sqrt(dt), axis=0)])
+        b_a = ba0 + np.vstack([np.zeros((1, 3)), np.cumsum(steps[:-1, 3:6] * grade.acc_walk * np.sqrt(dt), axis=0)])
+        gyro += b_w + steps[:, 6:9] * grade.gyro_noise * np.sqrt(rate_hz)
+        acc += b_a + steps[:, 9:12] * grade.acc_noise * np.sqrt(rate_hz)
+    t_ns = np.int64(t0_ns) + offset_ns
+    gt = GroundTruth(t_ns, s.p_world, R_to_quat_wxyz(s.world_R_body), s.v_world, b_w, b_a)
+    return ImuSeries(t_ns, gyro, acc), gt

@@ -1,0 +1,144 @@
+"""Built-in scenarios: camera motions (hand-held, smooth in acceleration) and the scenes they look at.
+
+orbit:   a 76.2 mm cube on a 2.0 x 1.6 m table in a 4.1 x 4.0 m room; the camera circles the cube at 0.38-0.66 m
+         in four rings at 0, 20, 40 and 60 deg elevation (one loop per ring, 15 s per ring, 4 s C3 transitions),
+         with hand wobble (sums of sinusoids, seeded phases) and the optical axis wandering around the cube.
+figure8: the same scene, a horizontal figure eight (10 s per loop) above the table looking at the cube.
+room:    a hand-held walk (steps bob the camera) around a 4 x 5 m room with a table, the cube and furniture.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from vio.sim.scene import Box, Scene
+from vio.sim.trajectory import PoseFn, Sinusoids, look_at, smoothstep7
+
+CUBE_SIZE_M = 0.0762  # 3 inches
+_CUBE_SHADE = (0.62, 0.80, 0.70, 0.52, 0.45, 0.95)  # -x, +x, -y, +y, bottom, top
+_WALL_SHADE = (0.85, 0.80, 0.90, 0.75, 0.70, 0.95)  # room walls, floor (face 4), ceiling (face 5)
+_SOLID_SHADE = (0.68, 0.76, 0.72, 0.64, 0.50, 0.92)
+
+
+def _cube_on(x: float, y: float, z_top: float) -> Box:
+    h = CUBE_SIZE_M / 2.0
+    lo = np.array([x - h, y - h, z_top])
+    return Box("object", lo, lo + CUBE_SIZE_M, CUBE_SIZE_M / 256.0, "object", hidden_faces=(4,), shade=_CUBE_SHADE)
+
+
+def tabletop_scene(texture_seed: int) -> Scene:
+    """The orbit scene: the cube at the origin on a table top (z = 0), backdrop walls 1.9-2.3 m away."""
+    table = Box("table", np.array([-1.0, -0.8, -0.03]), np.array([1.0, 0.8, 0.0]), 0.001, "table", False, (4,))
+    room = Box("room", np.array([-2.0, -1.7, -0.75]), np.array([2.1, 2.3, 1.75]), 0.004, "wall", True, (), _WALL_SHADE)
+    cube = _cube_on(0.0, 0.0, 0.0)
+    return Scene(room, (cube, table), 0, texture_seed, {"room_lo": room.lo, "room_hi": room.hi})
+
+
+def room_scene(texture_seed: int) -> Scene:
+    """A 4 x 5 x 2.6 m room (floor z = 0) with a table carrying the cube, a cabinet and a low chest."""
+    room = Box("room", np.array([-2.0, -2.5, 0.0]), np.array([2.0, 2.5, 2.6]), 0.004, "wall", True, (), _WALL_SHADE)
+    table = Box("table", np.array([-0.6, -0.4, 0.72]), np.array([0.6, 0.4, 0.75]), 0.002, "table", False, (4,))
+    cabinet = Box("cabinet", np.array([-2.0, -0.5, 0.0]), np.array([-1.6, 0.7, 1.1]), 0.003, "furniture")
+    chest = Box("chest", np.array([1.2, 1.7, 0.0]), np.array([2.0, 2.5, 0.5]), 0.003, "furniture")
+    base = Box("table_base", np.array([-0.3, -0.2, 0.0]), np.array([0.3, 0.2, 0.72]), 0.003, "furniture", False, (4,))
+    cube = _cube_on(0.1, -0.05, 0.75)
+    solids = tuple(Box(b.name, b.lo, b.hi, b.texel_m, b.style, False, (4,), _SOLID_SHADE) for b in (cabinet, chest))
+    return Scene(room, (cube, table, base, *solids), 0, texture_seed, {"room_lo": room.lo, "room_hi": room.hi})
+
+
+def trajectory_room_scene(p_world: np.ndarray, texture_seed: int) -> Scene:
+    """A room around a recorded trajectory: walls 2 m beyond its bounding box, floor 1.2 m below it, a cube."""
+    lo = p_world.min(axis=0) - np.array([2.0, 2.0, 1.2])
+    hi = p_world.max(axis=0) + np.array([2.0, 2.0, 1.5])
+    texel = max(0.004, float((hi - lo).max()) / 2048.0)
+    room = Box("room", lo, hi, texel, "wall", True, (), _WALL_SHADE)
+    centre = 0.5 * (p_world.min(axis=0) + p_world.max(axis=0))
+    cube = _cube_on(float(centre[0]), float(centre[1]), float(lo[2]))
+    return Scene(room, (cube,), 0, texture_seed, {"room_lo": lo, "room_hi": hi})
+
+
+def _camera_fn(pos: Callable, target: Callable, roll: Callable) -> PoseFn:
+    def fn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = pos(t)
+        return p, look_at(p, target(t), roll(t))
+
+    return fn
+
+
+def _hand(rng: np.random.Generator) -> tuple[Sinusoids, Sinusoids, Sinusoids]:
+    """Hand wobble of position (m), aim point (m) and roll (rad); vertical position wobble is halved."""
+    pos = Sinusoids.make([0.008, 0.005, 0.003, 0.0012], [0.41, 0.93, 1.63, 2.71], 3, rng, gains=[1.0, 1.0, 0.5])
+    aim = Sinusoids.make([0.012, 0.006, 0.002], [0.17, 0.43, 1.13], 3, rng)
+    roll = Sinusoids.make([0.05, 0.02, 0.004], [0.11, 0.37, 1.9], 1, rng)
+    return pos, aim, roll
+
+
+def orbit_camera(rng: np.random.Generator, cube_centre: np.ndarray, ring_s: float = 15.0) -> PoseFn:
+    """Camera pose function of the orbit: rings 0-20-40-60 deg (then back down), radius 0.40-0.64 m + wobble."""
+    pattern_deg = np.array([0.0, 20.0, 40.0, 60.0, 40.0, 20.0])
+    transition_s = 4.0
+    w_az = 2.0 * np.pi / ring_s
+    az0 = rng.uniform(0.0, 2.0 * np.pi)
+    az_wob = Sinusoids.make([0.06, 0.025], [0.05, 0.21], 1, rng)
+    rad = Sinusoids.make([0.072, 0.048], [0.045, 0.113], 1, rng)
+    el_wob = Sinusoids.make([np.radians(1.0), np.radians(0.5)], [0.09, 0.31], 1, rng)
+    pos_wob, aim_wob, roll_wob = _hand(rng)
+
+    def elevation(t: np.ndarray) -> np.ndarray:
+        n_seg = int(np.ceil((t.max(initial=0.0) + transition_s) / ring_s)) + 1
+        levels = np.radians(pattern_deg[np.arange(n_seg + 1) % pattern_deg.size])
+        e = np.full(t.shape, levels[0])
+        for k in range(n_seg):
+            start = (k + 1) * ring_s - transition_s / 2.0
+            e += (levels[k + 1] - levels[k]) * smoothstep7((t - start) / transition_s)
+        return e + el_wob(t)[:, 0]
+
+    def pos(t: np.ndarray) -> np.ndarray:
+        e = elevation(t)
+        az = az0 + w_az * t + az_wob(t)[:, 0]
+        r = 0.52 + rad(t)[:, 0]
+        ring = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], axis=1)
+        return cube_centre + r[:, None] * ring + pos_wob(t)
+
+    return _camera_fn(pos, lambda t: cube_centre + aim_wob(t), lambda t: roll_wob(t)[:, 0])
+
+
+def figure8_camera(rng: np.random.Generator, cube_centre: np.ndarray, loop_s: float = 10.0) -> PoseFn:
+    """A horizontal figure eight 0.7 x 0.32 m, 0.26-0.34 m above the table, in front of the cube."""
+    w = 2.0 * np.pi / loop_s
+    ph = rng.uniform(0.0, 2.0 * np.pi)
+    pos_wob, aim_wob, roll_wob = _hand(rng)
+    centre = np.array([0.0, -0.42, 0.30])
+
+    def pos(t: np.ndarray) -> np.ndarray:
+        a = w * t + ph
+        loop = np.stack([0.35 * np.sin(a), 0.16 * np.sin(2.0 * a), 0.04 * np.sin(a + 1.0)], axis=1)
+        return centre + loop + pos_wob(t)
+
+    return _camera_fn(pos, lambda t: cube_centre + aim_wob(t), lambda t: roll_wob(t)[:, 0])
+
+
+def room_camera(rng: np.random.Generator, lap_s: float = 25.0) -> PoseFn:
+    """A walk around an ellipse (1.1 x 1.5 m half axes) at 1.45 m, steps at 1.8 Hz, looking ahead and inwards."""
+    w = 2.0 * np.pi / lap_s
+    ph = rng.uniform(0.0, 2.0 * np.pi)
+    sway = Sinusoids.make([0.010, 0.004], [0.9, 2.1], 3, rng, gains=[1.0, 1.0, 0.0])
+    bob = Sinusoids.make([0.012, 0.003], [1.8, 3.6], 1, rng)
+    yaw = Sinusoids.make([0.55, 0.2], [0.045, 0.13], 1, rng)
+    pos_wob, aim_wob, roll_wob = _hand(rng)
+
+    def pos(t: np.ndarray) -> np.ndarray:
+        a = w * t + ph
+        p = np.stack([1.1 * np.cos(a), 1.5 * np.sin(a), np.full(t.shape, 1.45)], axis=1)
+        p[:, 2] += bob(t)[:, 0]
+        return p + sway(t) + pos_wob(t)
+
+    def target(t: np.ndarray) -> np.ndarray:
+        a = w * t + ph
+        heading = np.arctan2(1.5 * np.cos(a), -1.1 * np.sin(a)) + 0.6 + yaw(t)[:, 0]
+        look = np.stack([np.cos(heading), np.sin(heading), np.full(t.shape, -0.35)], axis=1)
+        return pos(t) + 1.5 * look + 3.0 * aim_wob(t)
+
+    return _camera_fn(pos, target, lambda t: roll_wob(t)[:, 0])
