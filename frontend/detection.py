@@ -7,8 +7,9 @@ The minimum-eigenvalue (Shi-Tomasi) response is computed once for the whole imag
 maxima above `quality_level` times the strongest response. They are accepted strongest first, subject to
 (1) a per-cell quota of a `grid_rows` x `grid_cols` grid, so that features spread over the image instead of
 piling up on the most textured patch, (2) `min_distance_px` from every existing track and every accepted corner,
-(3) `border_px` from the image border. When the quotas leave the target unmet (texture only in part of the image),
-a second pass fills up from the remaining candidates without quotas.
+(3) `border_px` from the image border. When the quotas leave the target unmet (texture only in part of the
+image), a second pass fills up from the remaining candidates without quotas. Accepted corners are then refined to
+sub-pixel positions (`refine_subpixel`).
 """
 
 from __future__ import annotations
@@ -77,11 +78,12 @@ def detect_corners(
     cells = cell_index(np.column_stack([xs, ys]), shape, cfg.grid_rows, cfg.grid_cols)
 
     r = max(int(round(cfg.min_distance_px)), 1)
+    budget = num_wanted + max(2, num_wanted // 10)  # spares for corners that refinement pushes over the border
     taken = np.zeros(xs.size, bool)
     accepted: list[int] = []
     for use_quota in (True, False):
         for i in range(xs.size):
-            if len(accepted) >= num_wanted:
+            if len(accepted) >= budget:
                 break
             if taken[i] or (use_quota and free[cells[i]] <= 0):
                 continue
@@ -95,12 +97,25 @@ def detect_corners(
     if not accepted:
         return empty
     idx = np.asarray(accepted)
-    pts = np.column_stack([xs[idx], ys[idx]]).astype(np.float32).reshape(-1, 1, 2)
-    win = max(int(cfg.subpix_window), 1)
-    if min(shape) > 2 * win + 5:
-        cv2.cornerSubPix(gray, pts, (win, win), (-1, -1), _SUBPIX_CRITERIA)
-    uv = pts.reshape(-1, 2).astype(np.float64)
+    uv = np.column_stack([xs[idx], ys[idx]]).astype(np.float64)
+    uv = refine_subpixel(gray, uv, int(cfg.subpix_window))
     h, w = shape
     b = cfg.border_px
     inside = (uv[:, 0] >= b) & (uv[:, 0] <= w - 1 - b) & (uv[:, 1] >= b) & (uv[:, 1] <= h - 1 - b)
-    return uv[inside], resp[idx][inside].astype(np.float64)
+    return uv[inside][:num_wanted], resp[idx][inside][:num_wanted].astype(np.float64)
+
+
+def refine_subpixel(gray: np.ndarray, uv: np.ndarray, half_window: int) -> np.ndarray:
+    """Sub-pixel corner positions by `cv2.cornerSubPix` in a (2 * half_window + 1)^2 window.
+
+    A corner whose refinement moves more than half the half-window has not converged on a corner (it drifted
+    towards the window edge, as happens on blob-like texture); it keeps its integer Shi-Tomasi position.
+    `half_window` 0 disables refinement.
+    """
+    if half_window <= 0 or uv.shape[0] == 0 or min(gray.shape[:2]) <= 2 * half_window + 5:
+        return uv
+    pts = uv.astype(np.float32).reshape(-1, 1, 2)
+    cv2.cornerSubPix(gray, pts, (half_window, half_window), (-1, -1), _SUBPIX_CRITERIA)
+    refined = pts.reshape(-1, 2).astype(np.float64)
+    converged = np.linalg.norm(refined - uv, axis=1) <= 0.5 * half_window
+    return np.where(converged[:, None], refined, uv)

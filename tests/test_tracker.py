@@ -1,0 +1,172 @@
+"""FeatureTracker on synthetic images with known motion, and the geometric check on known epipolar geometry."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from frontend.detection import cell_index, detect_corners
+from frontend.tracker import FeatureTracker
+from vio.config import TrackerConfig
+from vio.errors import CalibrationError, CaptureError, ConfigError
+from vio.records import CameraCalib, Frame
+
+W, H = 640, 480
+
+
+def camera(dist=(0.0, 0.0, 0.0, 0.0), width: int = W, height: int = H) -> CameraCalib:
+    return CameraCalib(width, height, 450.0, 450.0, width / 2 - 0.5, height / 2 - 0.5, np.array(dist), np.eye(4))
+
+
+def texture(seed: int = 0, size: tuple[int, int] = (H + 200, W + 200)) -> np.ndarray:
+    """A blurred-noise image (float, 0..255) larger than the frame so that shifted crops stay inside it."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, size).astype(np.float32), (0, 0), 2.0)
+    img = (img - img.min()) / (img.max() - img.min()) * 255.0
+    return img
+
+
+def shifted(tex: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """Frame whose pixel (x, y) shows the texture at (x - dx + 100, y - dy + 100): content moves by (+dx, +dy)."""
+    M = np.array([[1.0, 0.0, 100.0 - dx], [0.0, 1.0, 100.0 - dy]])
+    out = cv2.warpAffine(tex, M, (W, H), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def test_translation_is_tracked_with_stable_ids_and_ages():
+    tex = texture()
+    trk = FeatureTracker(camera(), TrackerConfig())
+    first = trk.track(Frame(0, 0, shifted(tex, 0.0, 0.0)))
+    assert first.ids.dtype == np.int64 and first.uv.shape == (150, 2)
+    assert np.array_equal(first.ids, np.arange(150)) and np.all(trk.ages() == 1)
+    step = np.array([2.5, -1.25])
+    born = dict.fromkeys(first.ids.tolist(), 0)
+    for k in range(1, 6):
+        tr = trk.track(Frame(k * 50_000_000, 0, shifted(tex, *(k * step))))
+        _, i0, i1 = np.intersect1d(first.ids, tr.ids, return_indices=True)
+        assert i0.size >= 140  # a pure shift loses only the tracks that leave through the border
+        err = tr.uv[i1] - (first.uv[i0] + k * step)
+        assert np.median(np.linalg.norm(err, axis=1)) < 0.05
+        assert tr.ids.size == 150 and np.unique(tr.ids).size == 150
+        new = np.array([i not in born for i in tr.ids.tolist()])
+        assert tr.ids[new].min(initial=10**9) > max(born)  # new ids never reuse old ones
+        born.update(dict.fromkeys(tr.ids[new].tolist(), k))
+        assert np.array_equal(trk.ages(), [k - born[i] + 1 for i in tr.ids.tolist()])
+
+
+def test_still_images_give_still_tracks_and_skip_the_essential_check():
+    tex = texture(1)
+    img = shifted(tex, 0, 0)
+    trk = FeatureTracker(camera(), TrackerConfig())
+    tr0 = trk.track(Frame(0, 0, img))
+    for k in range(1, 4):
+        tr = trk.track(Frame(k, 0, img))
+        assert np.array_equal(tr.ids, tr0.ids)
+        assert np.abs(tr.uv - tr0.uv).max() < 0.01
+    assert trk.stats["essential_skipped"] == 3 and trk.stats["essential_rejected"] == 0
+
+
+def test_featureless_then_textured_then_featureless():
+    trk = FeatureTracker(camera(), TrackerConfig())
+    blank = np.full((H, W), 128, np.uint8)
+    tr = trk.track(Frame(0, 0, blank))
+    assert tr.ids.shape == (0,) and tr.uv.shape == (0, 2) and trk.ages().shape == (0,)
+    tr = trk.track(Frame(1, 0, shifted(texture(2), 0, 0)))
+    assert tr.ids.size == 150
+    tr = trk.track(Frame(2, 0, blank))  # everything is lost; nothing is invented
+    assert tr.ids.size == 0
+    tr = trk.track(Frame(3, 0, cv2.cvtColor(shifted(texture(3), 0, 0), cv2.COLOR_GRAY2BGR)))  # BGR input
+    assert tr.ids.size == 150 and tr.ids.min() >= 150
+
+
+def test_detection_spreads_over_the_grid_and_keeps_distance():
+    cfg = TrackerConfig()
+    gray = shifted(texture(4), 0, 0)
+    # make one quadrant far more textured than the rest: without bucketing it would take most corners
+    gray[: H // 2, : W // 2] = np.clip(gray[: H // 2, : W // 2].astype(np.float32) * 3 - 250, 0, 255).astype(np.uint8)
+    uv, _ = detect_corners(gray, np.zeros((0, 2)), cfg.max_features, cfg)
+    assert uv.shape[0] == cfg.max_features
+    cells = np.bincount(cell_index(uv, (H, W), cfg.grid_rows, cfg.grid_cols), minlength=cfg.grid_rows * cfg.grid_cols)
+    assert np.count_nonzero(cells) >= 0.9 * cells.size
+    assert cells.max() <= int(np.ceil(cfg.max_features / cells.size)) + 1
+    d = np.linalg.norm(uv[:, None] - uv[None], axis=2) + np.eye(uv.shape[0]) * 1e9
+    assert d.min() >= cfg.min_distance_px - cfg.subpix_window  # refinement moves a corner by <= subpix_window / 2
+    b = cfg.border_px
+    assert uv[:, 0].min() >= b and uv[:, 1].min() >= b and uv[:, 0].max() <= W - 1 - b and uv[:, 1].max() <= H - 1 - b
+
+
+def test_texture_in_one_corner_still_reaches_the_target():
+    cfg = TrackerConfig(max_features=100)
+    gray = np.full((H, W), 100, np.uint8)
+    gray[: H // 2, : W // 2] = shifted(texture(5), 0, 0)[: H // 2, : W // 2]
+    uv, _ = detect_corners(gray, np.zeros((0, 2)), cfg.max_features, cfg)
+    assert uv.shape[0] == 100
+    assert np.all(uv[:, 0] < W // 2 + cfg.min_distance_px) and np.all(uv[:, 1] < H // 2 + cfg.min_distance_px)
+
+
+def test_detection_avoids_existing_tracks():
+    cfg = TrackerConfig()
+    gray = shifted(texture(6), 0, 0)
+    existing, _ = detect_corners(gray, np.zeros((0, 2)), 60, cfg)
+    new, _ = detect_corners(gray, existing, 90, cfg)
+    assert new.shape[0] == 90
+    d = np.linalg.norm(new[:, None] - existing[None], axis=2)
+    assert d.min() >= cfg.min_distance_px - cfg.subpix_window
+
+
+def test_subpixel_refinement_finds_true_corners():
+    """Checkerboard corners rendered at known sub-pixel positions are found to a small fraction of a pixel."""
+    s = 8  # render at 8x and downsample by area: the corner sits at a known non-integer pixel position
+    big = np.zeros((H * s, W * s), np.uint8)
+    ox, oy, sq = 0.375, 0.625, 40.0  # grid origin offset and square size in output pixels
+    yy, xx = np.mgrid[0 : H * s, 0 : W * s]
+    u = (xx + 0.5) / s - 0.5 - ox
+    v = (yy + 0.5) / s - 0.5 - oy
+    big[((np.floor(u / sq) + np.floor(v / sq)) % 2).astype(bool)] = 200
+    big += 25
+    gray = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)
+    cfg = TrackerConfig(max_features=60, min_distance_px=20.0)
+    uv, _ = detect_corners(gray, np.zeros((0, 2)), cfg.max_features, cfg)
+    assert uv.shape[0] >= 40
+    nearest = np.round((uv - [ox, oy]) / sq) * sq + [ox, oy]
+    err = np.linalg.norm(uv - nearest, axis=1)
+    assert np.median(err) < 0.1
+
+
+def _two_view(n: int, rng: np.random.Generator, cam: CameraCalib) -> tuple[np.ndarray, np.ndarray]:
+    """Projections (distorted px) of n random points in two views related by a rotation and a translation."""
+    p_c0 = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(3, 8, n)])
+    R = cv2.Rodrigues(np.array([0.01, -0.02, 0.005]))[0]
+    t = np.array([0.15, 0.02, 0.03])
+    p_c1 = p_c0 @ R.T + t
+    return cam.project(p_c0), cam.project(p_c1)
+
+
+@pytest.mark.parametrize("method", ["usac_magsac", "usac_accurate", "ransac"])
+def test_essential_check_rejects_outliers_on_distorted_views(method):
+    cam = camera(dist=(-0.28, 0.07, 2e-4, 2e-5))
+    rng = np.random.default_rng(7)
+    uv0, uv1 = _two_view(150, rng, cam)
+    uv1 = uv1 + rng.normal(0, 0.2, uv1.shape)
+    bad = rng.choice(150, 15, replace=False)
+    direction = rng.normal(size=(15, 2))
+    uv1[bad] += direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(4, 15, (15, 1))
+    trk = FeatureTracker(cam, TrackerConfig(essential_method=method))
+    inl = trk._essential_inliers(uv0, uv1)
+    outlier = np.zeros(150, bool)
+    outlier[bad] = True
+    # an outlier moved along its epipolar line is undetectable; allow one of those
+    assert np.count_nonzero(inl & outlier) <= 1
+    assert np.count_nonzero(~inl & ~outlier) <= 3
+
+
+def test_bad_inputs_raise_clear_errors():
+    with pytest.raises(ConfigError, match="essential_method"):
+        FeatureTracker(camera(), TrackerConfig(essential_method="magic"))
+    trk = FeatureTracker(camera(), TrackerConfig())
+    with pytest.raises(CalibrationError, match="320x240 px but the camera calibration says 640x480"):
+        trk.track(Frame(5, 0, np.zeros((240, 320), np.uint8)))
+    trk.track(Frame(5, 0, np.zeros((H, W), np.uint8)))
+    with pytest.raises(CaptureError, match="not after"):
+        trk.track(Frame(5, 0, np.zeros((H, W), np.uint8)))
