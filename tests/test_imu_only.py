@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vio.bench.imu_only import ImuOnlyConfig, dead_reckon, detect_static, gravity_align, so3_exp
-from vio.records import GRAVITY_WORLD, ImuSeries
+from vio.records import GRAVITY_WORLD, ImuCalib, ImuSeries
 
 RATE_HZ = 200
 
@@ -89,10 +89,11 @@ def test_noisy_imu_drifts_and_zupt_only_at_rest():
         imu.gyro + 0.01 * rng.standard_normal(imu.gyro.shape) + [0.005, -0.003, 0.004],
         imu.acc + 0.05 * rng.standard_normal(imu.acc.shape) + [0.05, 0.03, -0.04],
     )
-    static = detect_static(noisy, ImuOnlyConfig())
+    calib = ImuCalib(0.01 / np.sqrt(RATE_HZ), 0.05 / np.sqrt(RATE_HZ), 1e-5, 1e-4, RATE_HZ)
+    static = detect_static(noisy, ImuOnlyConfig(), calib)
     t_s = (noisy.t_ns - noisy.t_ns[0]) * 1e-9
     assert static[t_s < 1.5].all() and not static[t_s > 2.5].any()
-    res = dead_reckon(noisy, None, _T(p[0], R[0]), None)
+    res = dead_reckon(noisy, calib, _T(p[0], R[0]), None)
     assert res.bias_gyro == pytest.approx([0.005, -0.003, 0.004], abs=2e-3)
     assert _pos_err(res, noisy, p)[-1] > 0.3  # a few cm/s^2 of bias: metres within seconds
 

@@ -39,8 +39,9 @@ _NS = 1e-9
 @dataclass(frozen=True)
 class ImuOnlyConfig:
     static_window_s: float = 0.5  # length of the windows tested for rest, s
-    static_max_gyro: float = 0.03  # |mean gyro| and per-axis gyro std above this mean motion, rad/s
-    static_max_acc_std: float = 0.08  # per-axis accelerometer std above this means motion, m/s^2
+    static_max_gyro: float = 0.03  # |mean gyro| above this means motion, rad/s
+    static_max_gyro_std: float = 0.01  # per-axis gyro std above the white noise's own plus this means motion, rad/s
+    static_max_acc_std: float = 0.03  # per-axis accelerometer std above the noise's own plus this: motion, m/s^2
     static_max_acc_norm_err: float = 0.15  # | |mean acc| - g | above this means motion, m/s^2
     zupt: bool = True  # apply zero-velocity pseudo-measurements in detected rest windows
     zupt_sigma_m_s: float = 0.01  # sigma of a ZUPT pseudo-measurement, m/s
@@ -66,20 +67,25 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + (np.sin(angle) / angle) * K + ((1.0 - np.cos(angle)) / angle**2) * (K @ K)
 
 
-def detect_static(imu: ImuSeries, cfg: ImuOnlyConfig) -> np.ndarray:
-    """(N,) bool: samples inside a window of `static_window_s` where the IMU rests (see ImuOnlyConfig)."""
+def detect_static(imu: ImuSeries, cfg: ImuOnlyConfig, calib: ImuCalib | None = None) -> np.ndarray:
+    """(N,) bool: samples inside a window of `static_window_s` where the IMU rests (see ImuOnlyConfig).
+
+    The std thresholds add twice the per-sample white noise std of `calib` (density * sqrt(rate)) when given.
+    """
     n = len(imu)
     static = np.zeros(n, bool)
     if n < 3:
         return static
     rate = (n - 1) / max((imu.t_ns[-1] - imu.t_ns[0]) * _NS, 1e-9)
     w = max(int(round(cfg.static_window_s * rate)), 3)
+    sg = 2.0 * calib.gyroscope_noise_density * np.sqrt(rate) if calib is not None else 0.0
+    sa = 2.0 * calib.accelerometer_noise_density * np.sqrt(rate) if calib is not None else 0.0
     for i0 in range(0, n - w + 1, max(w // 2, 1)):
         g, a = imu.gyro[i0 : i0 + w], imu.acc[i0 : i0 + w]
         quiet = (
             np.linalg.norm(g.mean(axis=0)) < cfg.static_max_gyro
-            and g.std(axis=0).max() < cfg.static_max_gyro
-            and a.std(axis=0).max() < cfg.static_max_acc_std
+            and g.std(axis=0).max() < cfg.static_max_gyro_std + sg
+            and a.std(axis=0).max() < cfg.static_max_acc_std + sa
             and abs(np.linalg.norm(a.mean(axis=0)) - GRAVITY_M_S2) < cfg.static_max_acc_norm_err
         )
         if quiet:
@@ -125,11 +131,14 @@ def dead_reckon(
     n = len(imu)
     if n < 2:
         raise ValueError("dead_reckon needs at least 2 IMU samples")
-    static = detect_static(imu, cfg)
+    static = detect_static(imu, cfg, calib)
     bias_g = np.zeros(3)
     bias_a = np.zeros(3)
     if static[0]:
         i1 = int(np.argmin(static)) if not static.all() else n
+        # The detector's resolution is half a window: leave out the last half window before motion starts.
+        rate = (n - 1) / ((imu.t_ns[-1] - imu.t_ns[0]) * _NS)
+        i1 = max(i1 - int(0.5 * cfg.static_window_s * rate), min(i1, 10))
         acc_mean = imu.acc[:i1].mean(axis=0)
         bias_g = imu.gyro[:i1].mean(axis=0)
         f_hat = acc_mean / np.linalg.norm(acc_mean)
