@@ -5,11 +5,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from conftest import shared_path
 
 from frontend.detection import cell_index, detect_corners
 from frontend.tracker import FeatureTracker
 from vio.config import TrackerConfig
 from vio.errors import CalibrationError, CaptureError, ConfigError
+from vio.geometry import skew
 from vio.records import CameraCalib, Frame
 
 W, H = 640, 480
@@ -170,3 +172,99 @@ def test_bad_inputs_raise_clear_errors():
     trk.track(Frame(5, 0, np.zeros((H, W), np.uint8)))
     with pytest.raises(CaptureError, match="not after"):
         trk.track(Frame(5, 0, np.zeros((H, W), np.uint8)))
+
+
+# --- real images -------------------------------------------------------------------------------------------------
+
+
+def _middlebury_views() -> tuple[list, CameraCalib]:
+    """(name, image, K, R, t) of the consecutive templeRing views; x_cam = R @ X + t, pixels = K @ x_cam."""
+    d = shared_path("middlebury_temple", "templeRing_subset_13-31")
+    par = {}
+    for line in (d / "templeR_par.txt").read_text().splitlines()[1:]:
+        f = line.split()
+        v = np.array(f[1:], float)
+        par[f[0]] = (v[:9].reshape(3, 3), v[9:18].reshape(3, 3), v[18:21])
+    names = sorted(p.name for p in d.glob("templeR0*.png"))
+    views = [(n, cv2.imread(str(d / n), cv2.IMREAD_GRAYSCALE), *par[n]) for n in names]
+    K = views[0][2]
+    cam = CameraCalib(640, 480, K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.zeros(4), np.eye(4))
+    return views, cam
+
+
+def sampson_px(F: np.ndarray, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
+    """(N,) first-order geometric (Sampson) distance, px, of correspondences uv0 <-> uv1 to x1^T F x0 = 0."""
+    x0 = np.column_stack([uv0, np.ones(len(uv0))])
+    x1 = np.column_stack([uv1, np.ones(len(uv1))])
+    Fx0, Ftx1 = x0 @ F.T, x1 @ F
+    num = np.abs(np.sum(x1 * Fx0, axis=1))
+    return num / np.sqrt(Fx0[:, 0] ** 2 + Fx0[:, 1] ** 2 + Ftx1[:, 0] ** 2 + Ftx1[:, 1] ** 2)
+
+
+def test_middlebury_temple_tracks_satisfy_the_known_epipolar_geometry():
+    """Views 7.7 deg apart around a real object: tracks agree with F from the calibrated K, R, t.
+
+    Measured (this machine): median Sampson 0.094 px, 99th percentile 0.82 px, none above 2 px, 150 tracks in
+    every view; with the essential-matrix check off the 99th percentile is 1.9 px and the worst 27 px.
+    """
+    views, cam = _middlebury_views()
+    trk = FeatureTracker(cam, TrackerConfig())
+    errors, prev = [], None
+    for k, (_, img, K, R, t) in enumerate(views):
+        tr = trk.track(Frame(k * 100_000_000, 0, img))
+        assert tr.ids.size >= 100
+        if prev is not None:
+            tr0, K0, R0, t0 = prev
+            _, i0, i1 = np.intersect1d(tr0.ids, tr.ids, return_indices=True)
+            assert i0.size >= 60
+            R10 = R @ R0.T
+            t10 = t - R10 @ t0
+            F = np.linalg.inv(K).T @ skew(t10) @ R10 @ np.linalg.inv(K0)
+            errors.append(sampson_px(F, tr0.uv[i0], tr.uv[i1]))
+        prev = (tr, K, R, t)
+    e = np.concatenate(errors)
+    assert len(errors) == 18
+    assert np.median(e) < 0.25
+    assert np.percentile(e, 99) < 1.5
+    assert np.mean(e > 2.0) < 0.005
+
+
+def test_euroc_still_camera_gives_still_tracks():
+    """95 real frames of a parked drone: tracks neither drift nor wander apart.
+
+    The camera itself rotates by about 0.17 deg in these frames (ground truth; ~1.4 px), so raw displacement is
+    bounded loosely and the tight bounds are on the motion relative to the common image motion and on chaining
+    (frame-to-frame tracking compared with tracking from the first frame directly).
+    Measured: all 150 tracks survive; median per-track max displacement 1.7 px; relative 0.41 px; chaining 0.015 px.
+    """
+    from vio.capture import read_asl
+
+    cap = read_asl(shared_path("euroc_v1_01"))
+    trk = FeatureTracker(cap.camera, TrackerConfig())
+    uv_by_frame = []
+    first = None
+    for frame in cap.frames():
+        tr = trk.track(frame)
+        first = tr if first is None else first
+        _, i0, i1 = np.intersect1d(first.ids, tr.ids, return_indices=True)
+        uv = np.full(first.uv.shape, np.nan)
+        uv[i0] = tr.uv[i1]
+        uv_by_frame.append(uv)
+        assert tr.ids.size >= 140
+    uv = np.stack(uv_by_frame)  # (F, N, 2) positions of the first frame's tracks
+    alive = np.isfinite(uv[-1, :, 0])
+    assert alive.mean() >= 0.9
+    d = uv[:, alive] - uv[0, alive]
+    assert np.median(np.linalg.norm(d, axis=2).max(axis=0)) < 3.0
+    rel = np.linalg.norm(d - np.median(d, axis=1, keepdims=True), axis=2)
+    assert np.median(rel.max(axis=0)) < 0.8
+    direct, st, _ = cv2.calcOpticalFlowPyrLK(
+        cap.load_image(0),
+        cap.load_image(cap.num_frames - 1),
+        first.uv[alive].astype(np.float32),
+        None,
+        winSize=(21, 21),
+        maxLevel=3,
+    )
+    ok = st.ravel() == 1
+    assert np.median(np.linalg.norm(direct[ok] - uv[-1, alive][ok], axis=1)) < 0.1
