@@ -58,13 +58,17 @@ class BackendConfig:
     min_views: int = 3  # a landmark needs this many views before it enters the graph
     min_parallax_deg: float = 2.0  # ... and this much ray parallax, deg
     max_reprojection_px: float = 3.0  # admission and re-check threshold, px
+    landmark_prior_sigma_m: float = 5.0  # weak prior on each landmark at its triangulated position, m
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
+    factorization: str = "QR"  # iSAM2 factorization: QR (robust) | CHOLESKY (faster, fails on IMU-only stretches)
     smoother: str = "isam2"  # isam2 | fixed_lag
     lag_s: float = 3.0  # fixed-lag window when smoother == fixed_lag, s
     init_window_s: float = 1.0  # moving-start initialisation window, s
-    static_init_max_gyro: float = 0.02  # gyro norm below which the start counts as static, rad/s
-    static_init_max_acc_std: float = 0.05  # accelerometer std below which the start counts as static, m/s^2
+    static_init_max_gyro: float = 0.02  # std of 0.1 s gyro block means below which the start is static, rad/s
+    static_init_max_acc_std: float = 0.15  # std of 0.1 s accelerometer block means for a static start, m/s^2
+    still_max_px: float = 0.5  # zero-velocity update when tracks move less than this (median) and the IMU rests, px
+    still_window_s: float = 0.5  # IMU window of the at-rest test of the zero-velocity update, s
 
 
 @dataclass(frozen=True)

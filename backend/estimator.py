@@ -1,0 +1,365 @@
+"""The visual-inertial estimator: one keyframe at a time into an iSAM2 (or fixed-lag) smoother.
+
+Per keyframe k: a `CombinedImuFactor` from k-1 (preintegrated with the latest bias estimate), projection factors
+of admitted landmarks, newly admitted landmarks with all their views, and known-position factors. The first
+`init_window_s` of keyframes are buffered for initialisation (static or moving start, then a joint LM refinement
+of the window). A solver exception or a tracking loss does not end the run: the smoother is rebuilt from the last
+good state (priors on its pose, velocity and bias), landmarks re-enter through admission, and the event is
+recorded in `recoveries`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from backend import factors as fb
+from backend.initialisation import InitialGuess, moving_start, static_start
+from backend.keys import B, L, V, X
+from backend.landmarks import LandmarkBook
+from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
+from vio.config import BackendConfig
+from vio.records import CameraCalib, FeatureTracks, ImuSeries, StateEstimate
+
+log = logging.getLogger(__name__)
+
+# Preintegrate(t0_ns, t1_ns, bias) -> object with `.pim` (PreintegratedCombinedMeasurements) and `.gap` (bool).
+Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
+KnownPosition = tuple[int, np.ndarray, float]  # (t_ns, p_world (3,) m, sigma m)
+
+
+def _get(values: gtsam.Values, key: int) -> Any:
+    """The value of a key of any of the four kinds (X pose, V velocity, B bias, L point)."""
+    sym = chr(gtsam.Symbol(key).chr())
+    if sym == "x":
+        return values.atPose3(key)
+    if sym == "v":
+        return values.atVector(key)
+    if sym == "b":
+        return values.atConstantBias(key)
+    return values.atPoint3(key)
+
+
+class VioEstimator:
+    """Tightly coupled visual-inertial smoothing. Feed keyframes with `add_keyframe`, then call `finish`."""
+
+    def __init__(
+        self,
+        camera: CameraCalib,
+        imu: ImuSeries,
+        preintegrate: Preintegrate,
+        cfg: BackendConfig,
+        bias_sigma_acc: float = 0.1,
+        bias_sigma_gyro: float = 0.01,
+        positions: list[KnownPosition] | None = None,
+    ) -> None:
+        self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
+        self.bias_sigma_acc, self.bias_sigma_gyro = bias_sigma_acc, bias_sigma_gyro
+        self.K, self.body_P_cam = fb.calibration(camera)
+        self.noise = fb.pixel_noise(cfg.pixel_sigma, cfg.huber_k)
+        self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg)
+        self.smoother = Smoother(cfg)
+        self.positions = sorted(positions or [], key=lambda p: p[0])
+        self.t_ns: dict[int, int] = {}  # keyframe index -> time
+        self.pending: list[int] = []  # keyframes waiting for initialisation
+        self.pims: dict[int, Any] = {}  # k -> preintegration from the keyframe before k
+        self.values = gtsam.Values()  # latest estimate of every variable ever added
+        self.all_factors = gtsam.NonlinearFactorGraph()  # every measurement factor + the initial priors (batch)
+        self.initialised = False
+        self.last_k: int | None = None
+        self.bias = gtsam.imuBias.ConstantBias()
+        self.timings_ms: list[float] = []
+        self.recoveries: list[dict[str, Any]] = []
+        self.warnings: list[str] = []
+        self.init_kind = ""
+        self.num_obs: dict[int, int] = {}  # track id -> projection factors in the graph
+        self.num_still = 0  # keyframes with a zero-velocity update
+
+    # ----------------------------------------------------------------- helpers
+    def _pose(self, k: int) -> np.ndarray:
+        return self.values.atPose3(X(k)).matrix()
+
+    def _known_poses(self) -> dict[int, np.ndarray]:
+        return {k: self._pose(k) for k in self.t_ns if self.values.exists(X(k))}
+
+    def _warn(self, msg: str) -> None:
+        log.warning(msg)
+        self.warnings.append(msg)
+
+    def _state(self, k: int, solve_ms: float) -> StateEstimate:
+        b = self.values.atConstantBias(B(k))
+        return StateEstimate(
+            k,
+            self.t_ns[k],
+            self._pose(k),
+            np.asarray(self.values.atVector(V(k))),
+            b.gyroscope(),
+            b.accelerometer(),
+            solve_ms=solve_ms,
+        )
+
+    def _set(self, key: int, value: Any) -> None:
+        if self.values.exists(key):
+            self.values.update(key, value)
+        else:
+            self.values.insert(key, value)
+
+    def _absorb(self, est: gtsam.Values) -> None:
+        for key in est.keys():
+            self._set(key, _get(est, key))
+
+    def _position_factors(self, k: int) -> list[gtsam.NonlinearFactor]:
+        """Known positions within half a keyframe interval of keyframe k (sigma inflated by the time offset)."""
+        out = []
+        t = self.t_ns[k]
+        for t_p, p, sigma in self.positions:
+            dt = abs(t_p - t) * 1e-9
+            if dt <= 0.5 / max(self.camera.rate_hz, 1.0):
+                out.append(fb.position_factor(k, p, float(np.hypot(sigma, dt * 1.0))))
+        return out
+
+    # ----------------------------------------------------------------- public
+    def add_keyframe(self, t_ns: int, tracks: FeatureTracks) -> list[StateEstimate]:
+        """Add a keyframe (tracks in distorted pixels); returns the estimates produced (several after init)."""
+        k = 0 if self.last_k is None else self.last_k + 1
+        self.t_ns[k] = int(t_ns)
+        uv = fb.undistorted_px(self.camera, tracks.uv)
+        if self.last_k is not None:
+            pre = self.preintegrate(self.t_ns[self.last_k], t_ns, self.bias)
+            self.pims[k] = pre.pim
+            if getattr(pre, "gap", False):
+                self._warn(f"IMU gap before keyframe {k} (t={t_ns} ns); its inertial factor is weak")
+        prev, self.last_k = self.last_k, k
+        self.book.observe(k, tracks.ids, uv)
+        if not self.initialised:
+            self.pending.append(k)
+            return self._try_initialise()
+        return [self._step(prev, k, tracks.ids)]
+
+    def finish(self, refine: bool = False) -> dict[str, Any]:
+        """Final estimate of all keyframes (and a batch LM refinement when asked); returns counts."""
+        info: dict[str, Any] = {"refined": False}
+        if refine and self.initialised:
+            t0 = time.perf_counter()
+            try:
+                self._absorb(batch_solve(self.all_factors, self.values))
+                info["refined"] = True
+            except RuntimeError as exc:
+                self._warn(f"batch refinement failed ({first_line(exc)}); keeping the online estimate")
+            info["refine_s"] = time.perf_counter() - t0
+        return info
+
+    def states(self) -> list[StateEstimate]:
+        """The current (smoothed) estimate of every initialised keyframe, in time order."""
+        return [self._state(k, 0.0) for k in sorted(self.t_ns) if self.values.exists(X(k))]
+
+    def landmarks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(M,) track ids, (M, 3) world points (m), (M,) number of projection factors."""
+        ids = [j for j in sorted(self.num_obs) if self.values.exists(L(j))]
+        pts = np.array([self.values.atPoint3(L(j)) for j in ids]).reshape(-1, 3)
+        return np.asarray(ids, np.int64), pts, np.array([self.num_obs[j] for j in ids], np.int64)
+
+    # ----------------------------------------------------------------- initialisation
+    def _try_initialise(self) -> list[StateEstimate]:
+        ks = self.pending
+        if (self.t_ns[ks[-1]] - self.t_ns[ks[0]]) * 1e-9 < self.cfg.init_window_s or len(ks) < 4:
+            return []
+        guess = self._guess(ks)
+        if guess is None:
+            self.pending = ks[1:]
+            return []
+        t0 = time.perf_counter()
+        graph, values = self._window_graph(ks, guess)
+        try:
+            values = batch_solve(graph, values)
+            self.smoother.update(graph, values, {key: 0.0 for key in values.keys()})
+        except (RuntimeError, SolverFailure) as exc:
+            self._warn(f"initialisation at keyframe {ks[-1]} failed ({first_line(exc)}); retrying later")
+            self.smoother.reset()
+            self.pending = ks[1:]
+            for j in list(self.num_obs):
+                self.book.tracks[j].admitted = False
+            self.num_obs.clear()
+            return []
+        self._absorb(self.smoother.estimate())
+        self.bias = self.values.atConstantBias(B(ks[-1]))
+        self.initialised, self.init_kind = True, guess.kind
+        ms = (time.perf_counter() - t0) * 1e3
+        self.timings_ms.append(ms)
+        log.info("initialised (%s start) with %d keyframes, %d landmarks", guess.kind, len(ks), len(self.num_obs))
+        self.pending = []
+        return [self._state(k, ms) for k in ks]
+
+    def _guess(self, ks: list[int]) -> InitialGuess | None:
+        rest = static_start(self.imu, self.t_ns[ks[0]], self.t_ns[ks[-1]], self.cfg)
+        if rest is not None:
+            world_R_body, bias_gyro = rest
+            T = np.eye(4)
+            T[:3, :3] = world_R_body
+            return InitialGuess({k: T for k in ks}, {k: np.zeros(3) for k in ks}, bias_gyro, np.zeros(3), {}, "static")
+        A_R = {ks[0]: np.eye(3)}
+        delta = {}
+        for a, b in zip(ks[:-1], ks[1:], strict=True):
+            pim = self.pims[b]
+            A_R[b] = A_R[a] @ pim.deltaRij().matrix()
+            delta[b] = (np.asarray(pim.deltaPij()), np.asarray(pim.deltaVij()), pim.deltaTij())
+        obs = {}
+        for j, tr in self.book.tracks.items():
+            views = {k: self.book.normalized(uv)[0] for k, uv in tr.views.items() if k in A_R}
+            if len(views) >= 3:
+                obs[j] = views
+        if len(obs) < 10:
+            self._warn(f"moving start at keyframe {ks[-1]}: only {len(obs)} tracks span the window; waiting")
+            return None
+        sigma_norm = self.cfg.pixel_sigma / self.camera.fx * 2.0
+        guess = moving_start(ks, A_R, delta, obs, self.camera.body_T_cam, sigma_norm, self.bias.gyroscope())
+        if not 0.85 < guess.gravity_norm_free / 9.81 < 1.15:
+            self._warn(
+                f"moving start at keyframe {ks[-1]}: gravity {guess.gravity_norm_free:.2f} m/s^2 from the linear "
+                "alignment is implausible (too little excitation); sliding the window"
+            )
+            return None
+        return guess
+
+    def _window_graph(self, ks: list[int], guess: InitialGuess) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        bias0 = gtsam.imuBias.ConstantBias(guess.bias_acc, guess.bias_gyro)
+        static = guess.kind == "static"
+        priors = [
+            fb.pose_prior_gravity_aware(ks[0], gtsam.Pose3(guess.world_T_body[ks[0]]), 0.1, 1e-3, 1e-3),
+            fb.velocity_prior(ks[0], guess.v_world[ks[0]], 0.01 if static else 0.5),
+            fb.bias_prior(ks[0], bias0, self.bias_sigma_acc, self.bias_sigma_gyro),
+        ]
+        for f in priors:
+            graph.add(f)
+            self.all_factors.add(f)
+        for k in ks:
+            values.insert(X(k), gtsam.Pose3(guess.world_T_body[k]))
+            values.insert(V(k), np.asarray(guess.v_world[k], float))
+            values.insert(B(k), bias0)
+        for a, b in zip(ks[:-1], ks[1:], strict=True):
+            self._add(graph, fb.imu_factor(a, b, self.pims[b]))
+        for k in ks:
+            for f in self._position_factors(k):
+                self._add(graph, f)
+        poses = guess.world_T_body
+        for j, tr in self.book.tracks.items():
+            p = self.book.try_admit(j, poses)
+            if p is None:
+                continue
+            values.insert(L(j), p)
+            graph.add(fb.landmark_prior(j, p, self.cfg.landmark_prior_sigma_m))
+            for kk, uv in tr.views.items():
+                if kk in poses:
+                    self._add_projection(graph, kk, j, uv)
+            tr.admitted = True
+        return graph, values
+
+    # ----------------------------------------------------------------- steady state
+    def _add(self, graph: gtsam.NonlinearFactorGraph, factor: gtsam.NonlinearFactor) -> None:
+        graph.add(factor)
+        self.all_factors.add(factor)
+
+    def _add_projection(self, graph: gtsam.NonlinearFactorGraph, k: int, j: int, uv: np.ndarray) -> None:
+        self._add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.noise))
+        self.num_obs[j] = self.num_obs.get(j, 0) + 1
+
+    def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
+        t0 = time.perf_counter()
+        pose_prev = self.values.atPose3(X(prev))
+        v_prev = self.values.atVector(V(prev))
+        pred = self.pims[k].predict(gtsam.NavState(pose_prev, v_prev), self.bias)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(X(k), pred.pose())
+        values.insert(V(k), pred.velocity())
+        values.insert(B(k), self.bias)
+        self._set(X(k), pred.pose())
+        self._set(V(k), pred.velocity())
+        self._set(B(k), self.bias)
+        self._add(graph, fb.imu_factor(prev, k, self.pims[k]))
+        for f in self._position_factors(k):
+            self._add(graph, f)
+        if self._is_still(prev, k, ids):
+            for f in fb.no_motion_factors(prev, k):
+                self._add(graph, f)
+            self.num_still += 1
+        t_s = self.t_ns[k] * 1e-9
+        stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
+        poses = None
+        for j in ids.tolist():
+            tr = self.book.tracks[j]
+            if tr.admitted:
+                if self.smoother.has(L(j)):
+                    self._add_projection(graph, k, j, tr.views[k])
+                    stamps[L(j)] = t_s
+                continue
+            if len(tr.views) < self.cfg.min_views:
+                continue
+            poses = self._known_poses() if poses is None else poses
+            p = self.book.try_admit(j, poses)
+            if p is None:
+                continue
+            values.insert(L(j), p)
+            self._set(L(j), p)
+            stamps[L(j)] = t_s
+            graph.add(fb.landmark_prior(j, p, self.cfg.landmark_prior_sigma_m))
+            for kk, uv in tr.views.items():
+                if kk in poses and self.smoother.has(X(kk)) or kk == k:
+                    self._add_projection(graph, kk, j, uv)
+            tr.admitted = True
+        try:
+            self.smoother.update(graph, values, stamps)
+            est = self.smoother.estimate()
+        except SolverFailure as exc:
+            est = self._recover(prev, k, str(exc))
+        self._absorb(est)
+        self.bias = self.values.atConstantBias(B(k))
+        ms = (time.perf_counter() - t0) * 1e3
+        self.timings_ms.append(ms)
+        return self._state(k, ms)
+
+    def _is_still(self, prev: int, k: int, ids: np.ndarray) -> bool:
+        """At rest between keyframes prev and k: the tracks shared with prev moved less than `still_max_px`
+        (median) and the IMU over the last `still_window_s` passes the static test (zero-velocity update)."""
+        if self.cfg.still_max_px <= 0:
+            return False
+        moved = [
+            np.linalg.norm(tr.views[k] - tr.views[prev])
+            for tr in (self.book.tracks[j] for j in ids.tolist())
+            if prev in tr.views
+        ]
+        if len(moved) < 5 or float(np.median(moved)) > self.cfg.still_max_px:
+            return False
+        t1 = self.t_ns[k]
+        return static_start(self.imu, t1 - int(self.cfg.still_window_s * 1e9), t1, self.cfg) is not None
+
+    def _recover(self, prev: int, k: int, reason: str) -> gtsam.Values:
+        """Rebuild the smoother from the last good state (prev) plus keyframe k's inertial factor."""
+        self._warn(f"solver failed at keyframe {k} ({reason}); rebuilding from keyframe {prev}")
+        self.recoveries.append({"k": k, "t_ns": self.t_ns[k], "reason": reason, "restart_from_k": prev})
+        self.smoother.reset()
+        self.book.forget_before(prev)
+        self.num_obs = {j: n for j, n in self.num_obs.items() if self.values.exists(L(j))}
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        bias = self.values.atConstantBias(B(prev))
+        graph.add(
+            gtsam.PriorFactorPose3(X(prev), self.values.atPose3(X(prev)), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3))
+        )
+        graph.add(fb.velocity_prior(prev, self.values.atVector(V(prev)), 0.05))
+        graph.add(fb.bias_prior(prev, bias, 0.02, 1e-3))
+        graph.add(fb.imu_factor(prev, k, self.pims[k]))
+        for key in (X(prev), V(prev), B(prev), X(k), V(k), B(k)):
+            values.insert(key, _get(self.values, key))
+        t_s = self.t_ns[k] * 1e-9
+        try:
+            self.smoother.update(graph, values, {key: t_s for key in values.keys()})
+            return self.smoother.estimate()
+        except SolverFailure as exc:  # keep the prediction; the next keyframe rebuilds again from here
+            self._warn(f"rebuild at keyframe {k} failed too ({exc}); keeping the inertial prediction")
+            self.smoother.reset()
+            return values

@@ -1,0 +1,114 @@
+"""Landmark admission: a track becomes a graph landmark only once it is well triangulated.
+
+Admitting a landmark on first sight makes iSAM2 throw `IndeterminantLinearSystemException`, so a track enters
+after `min_views` keyframe views with `min_parallax_deg` of ray parallax, in front of every camera, with every
+view reprojecting within `max_reprojection_px`. Observations are kept in undistorted pixels (see factors.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vio.config import BackendConfig
+
+
+@dataclass
+class Track:
+    """One feature track's keyframe observations: keyframe index -> undistorted pixel (2,)."""
+
+    views: dict[int, np.ndarray] = field(default_factory=dict)
+    admitted: bool = False
+    rejected_until: int = -1  # do not retry triangulation before this many views
+
+
+def camera_poses(world_T_body: dict[int, np.ndarray], body_T_cam: np.ndarray, ks: list[int]) -> np.ndarray:
+    """(M, 4, 4) world_T_cam for keyframes ks."""
+    return np.stack([world_T_body[k] @ body_T_cam for k in ks])
+
+
+def triangulate(world_T_cam: np.ndarray, xn: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of one point from M views: world_T_cam (M, 4, 4), normalized xn (M, 2) -> (3,)."""
+    cam_T_world_R = np.transpose(world_T_cam[:, :3, :3], (0, 2, 1))
+    c = world_T_cam[:, :3, 3]
+    rows = []
+    rhs = []
+    for R, ci, (x, y) in zip(cam_T_world_R, c, xn, strict=True):
+        a1 = R[0] - x * R[2]  # (R (P - c))_x - x (R (P - c))_z = 0
+        a2 = R[1] - y * R[2]
+        rows += [a1, a2]
+        rhs += [a1 @ ci, a2 @ ci]
+    A = np.asarray(rows)
+    sol, *_ = np.linalg.lstsq(A, np.asarray(rhs), rcond=None)
+    return sol
+
+
+def project(world_T_cam: np.ndarray, p_world: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project one world point into M cameras: returns (M, 2) pixels and (M,) depths (m)."""
+    R = world_T_cam[:, :3, :3]
+    p_cam = np.einsum("mji,mj->mi", R, p_world[None, :] - world_T_cam[:, :3, 3])
+    z = p_cam[:, 2]
+    uv = np.column_stack([K[0, 0] * p_cam[:, 0] / z + K[0, 2], K[1, 1] * p_cam[:, 1] / z + K[1, 2]])
+    return uv, z
+
+
+def parallax_deg(world_T_cam: np.ndarray, xn: np.ndarray) -> float:
+    """Largest angle between the world-frame viewing rays, deg."""
+    rays = np.column_stack([xn, np.ones(len(xn))])
+    rays = np.einsum("mij,mj->mi", world_T_cam[:, :3, :3], rays)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    cos = np.clip(rays @ rays.T, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos.min())))
+
+
+class LandmarkBook:
+    """Observation buffer and admission test for all tracks."""
+
+    def __init__(self, K: np.ndarray, body_T_cam: np.ndarray, cfg: BackendConfig) -> None:
+        self.K = np.asarray(K, float)
+        self.K_inv = np.linalg.inv(self.K)
+        self.body_T_cam = np.asarray(body_T_cam, float)
+        self.cfg = cfg
+        self.tracks: dict[int, Track] = {}
+
+    def observe(self, k: int, ids: np.ndarray, uv_px: np.ndarray) -> None:
+        """Record keyframe k's observations (undistorted pixels)."""
+        for j, uv in zip(ids.tolist(), uv_px, strict=True):
+            self.tracks.setdefault(int(j), Track()).views[k] = np.asarray(uv, float)
+
+    def normalized(self, uv_px: np.ndarray) -> np.ndarray:
+        uv_px = np.atleast_2d(uv_px)
+        return (uv_px - self.K[:2, 2]) / np.array([self.K[0, 0], self.K[1, 1]])
+
+    def try_admit(self, j: int, world_T_body: dict[int, np.ndarray]) -> np.ndarray | None:
+        """Triangulate track j from the views whose pose is known; returns the world point (3,) if admissible."""
+        tr = self.tracks[j]
+        ks = [k for k in tr.views if k in world_T_body]
+        if len(ks) < self.cfg.min_views or len(ks) < tr.rejected_until:
+            return None
+        Twc = camera_poses(world_T_body, self.body_T_cam, ks)
+        uv = np.stack([tr.views[k] for k in ks])
+        xn = self.normalized(uv)
+        if parallax_deg(Twc, xn) < self.cfg.min_parallax_deg:
+            return None
+        p = triangulate(Twc, xn)
+        proj, z = project(Twc, p, self.K)
+        err = np.linalg.norm(proj - uv, axis=1)
+        if np.all(z > 0.05) and np.all(np.isfinite(err)) and err.max() <= self.cfg.max_reprojection_px:
+            return p
+        tr.rejected_until = len(ks) + 1
+        return None
+
+    def reprojection_px(self, world_T_body: np.ndarray, p_world: np.ndarray, uv_px: np.ndarray) -> tuple[float, float]:
+        """Reprojection error (px) and depth (m) of a world point in the camera of one body pose."""
+        Twc = (world_T_body @ self.body_T_cam)[None]
+        proj, z = project(Twc, p_world, self.K)
+        return float(np.linalg.norm(proj[0] - uv_px)), float(z[0])
+
+    def forget_before(self, k: int) -> None:
+        """Drop views older than keyframe k and un-admit every landmark (used after a solver rebuild)."""
+        for tr in self.tracks.values():
+            tr.views = {kk: uv for kk, uv in tr.views.items() if kk >= k}
+            tr.admitted = False
+            tr.rejected_until = -1
