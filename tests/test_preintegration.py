@@ -251,3 +251,34 @@ def test_jittered_imu_on_the_simulated_orbit():
     assert not any(pi.between(int(a), int(b), ZERO_BIAS).gap for a, b in zip(kf[:-1], kf[1:], strict=True))
     dp, dr, dv = _sim_prediction_worst(pi, kf, state_at)  # measured 4.3e-6 m, 6.0e-6 rad, 4.7e-5 m/s
     assert dp < 1e-5 and dr < 1.2e-5 and dv < 1e-4, (dp, dr, dv)
+
+
+def test_noise_model_is_consistent_on_phone_grade_imu(sim_capture):
+    """With the true states and biases, CombinedImuFactor residuals whiten to chi2 with 15 dof on average.
+
+    This checks the Kalibr-density -> gtsam covariance mapping: a density used as a variance, or a discrete sigma
+    used as a density, moves the mean by orders of magnitude. Measured mean: 14.2 (seed 0), 14.8 (seed 1).
+    """
+    from gtsam.symbol_shorthand import B, V, X
+
+    from vio.capture import read_asl
+
+    cap = read_asl(sim_capture("orbit", duration_s=8.0, imu="phone", images=False))
+    gt = cap.ground_truth
+    pi = ImuPreintegrator(cap.imu, cap.imu_calib, ImuConfig())
+    chi2 = []
+    for i in range(0, len(gt) - 20, 20):
+        j = i + 20
+        b0, b1 = (gtsam.imuBias.ConstantBias(gt.b_a[k], gt.b_w[k]) for k in (i, j))
+        pre = pi.between(int(gt.t_ns[i]), int(gt.t_ns[j]), b0)
+        factor = gtsam.CombinedImuFactor(X(0), V(0), X(1), V(1), B(0), B(1), pre.pim)
+        values = gtsam.Values()
+        values.insert(X(0), gtsam.Pose3(gt.world_T_body(i)))
+        values.insert(X(1), gtsam.Pose3(gt.world_T_body(j)))
+        values.insert(V(0), gt.v_world[i])
+        values.insert(V(1), gt.v_world[j])
+        values.insert(B(0), b0)
+        values.insert(B(1), b1)
+        chi2.append(2.0 * factor.error(values))
+    assert len(chi2) >= 70
+    assert 11.0 < np.mean(chi2) < 20.0, np.mean(chi2)
