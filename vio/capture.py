@@ -82,24 +82,19 @@ def _check_monotonic(path: Path, t_ns: np.ndarray, rows: list[int], what: str) -
 
 
 def read_imu_csv(path: Path, warnings: list[str] | None = None) -> ImuSeries:
-    t, v, rows = read_numeric_csv(path, 7)
-    if t.size == 0:
+    """Read `imu0/data.csv` (t_ns, gyro rad/s, acc m/s^2). Bad rows follow `vio.readers.tables`' policy; gaps warn."""
+    from vio.readers.tables import ensure_increasing, read_table
+    from vio.readers.validate import gap_warnings
+
+    warn: list[str] = [] if warnings is None else warnings
+    table = read_table(path, 0, [1, 2, 3, 4, 5, 6], warnings=warn, what="IMU")
+    if len(table) == 0:
         raise CaptureError("no IMU samples", path)
-    bad = ~np.isfinite(v).all(axis=1)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        msg = f"{path}:{rows[i]}: {int(bad.sum())} IMU row(s) with NaN/inf dropped (first here)"
-        log.warning(msg)
-        if warnings is not None:
-            warnings.append(msg)
-        t, v, rows = t[~bad], v[~bad], [r for r, b in zip(rows, bad, strict=True) if not b]
-    keep = _check_monotonic(path, t, rows, "IMU")
-    if not keep.all():
-        msg = f"{path}: {int((~keep).sum())} duplicate IMU timestamp(s) dropped"
-        log.warning(msg)
-        if warnings is not None:
-            warnings.append(msg)
-    return ImuSeries(t[keep], v[keep, 0:3].copy(), v[keep, 3:6].copy())
+    table = ensure_increasing(table, "IMU", warn)
+    if len(table) < 2:
+        raise CaptureError(f"only {len(table)} IMU sample(s)", path)
+    warn += gap_warnings(table.t_ns, table.rows, Path(path), "IMU", 4.0)
+    return ImuSeries(table.t_ns, table.values[:, 0:3].copy(), table.values[:, 3:6].copy())
 
 
 def read_groundtruth_csv(path: Path) -> GroundTruth:
@@ -165,8 +160,24 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
         keep = _check_monotonic(cam_csv, frame_t, rows, "frame")
         if not keep.all():
             warnings.append(f"{cam_csv}: {int((~keep).sum())} duplicate frame timestamp(s) dropped")
+        data_dir = mav0 / "cam0" / "data"
+        present = set(os.listdir(data_dir)) if data_dir.is_dir() else set()
+        exists = np.array([n in present for n in names], bool)
+        if not exists.all():
+            first = int(np.flatnonzero(~exists)[0])
+            if not exists.any():
+                raise CaptureError(f"none of the {len(names)} listed images exist in {data_dir}", cam_csv, rows[first])
+            warnings.append(
+                f"{cam_csv}:{rows[first]}: {int((~exists).sum())} listed image(s) missing, frames skipped "
+                f"(first: {names[first]})"
+            )
+        keep &= exists
         frame_t = frame_t[keep]
-        paths = [mav0 / "cam0" / "data" / n for n, k in zip(names, keep, strict=True) if k]
+        paths = [data_dir / n for n, k in zip(names, keep, strict=True) if k]
+        from vio.readers.validate import gap_warnings
+
+        kept_rows = np.asarray(rows)[keep]
+        warnings += gap_warnings(frame_t, kept_rows, cam_csv, "frame", 2.5)
     gt = None
     gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
     if gt_csv.exists():
@@ -180,7 +191,8 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
             raise CaptureError("image missing or cannot be decoded", p)
         return img
 
-    cap = Capture(root, camera, imu_calib, imu, frame_t, load, gt, scene, [], "asl")
+    fmt = "tumvi" if (mav0 / "mocap0").is_dir() or (root / "dso").is_dir() else "asl"
+    cap = Capture(root, camera, imu_calib, imu, frame_t, load, gt, scene, [], fmt)
     for w in warnings:
         cap.warn(w)
     return cap

@@ -1,0 +1,64 @@
+"""MARS logger folders (Mobile AR Sensor logger, Android and iOS).
+
+Android layout: `movie.mp4` (H.264), `frame_timestamps.txt` (one sensor-clock timestamp in ns per video frame,
+first field of each line), `gyro_accel.csv` (`Timestamp[nanosec],gx[rad/s],gy,gz,ax[m/s^2],ay,az[,Unix time]`, the
+accelerometer interpolated onto the gyro times by the app), `movie_metadata.csv` (per-frame camera metadata, not
+needed here). iOS layout: no `frame_timestamps.txt`; frame times are the first column of `movie_metadata.csv`, and
+timestamps are in seconds when the header says `[sec]`. Calibration: `--calib`, or `calib.yaml` in the folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from vio.capture import Capture
+from vio.errors import CaptureError
+from vio.readers.common import frame_times, imu_from_table, make_capture, resolve_calibration
+from vio.readers.tables import read_lines, read_table
+from vio.readers.video import VideoFrames, find_video, match_frame_count
+
+
+def _time_scale(path: Path) -> int:
+    """1 for ns, 10**9 for seconds, from the header's unit (ns when there is no header)."""
+    lines, _ = read_lines(path)
+    for line in lines:
+        s = line.strip().lower()
+        if not s:
+            continue
+        if "[sec]" in s or "[s]" in s:
+            return 1_000_000_000
+        return 1
+    return 1
+
+
+def is_mars(folder: Path) -> bool:
+    return (folder / "gyro_accel.csv").is_file()
+
+
+def read_mars(folder: Path, calib: str | Path | None = None) -> Capture:
+    folder = Path(folder)
+    warnings: list[str] = []
+    imu_csv = folder / "gyro_accel.csv"
+    scale = _time_scale(imu_csv)
+    imu = imu_from_table(
+        read_table(imu_csv, 0, [1, 2, 3, 4, 5, 6], time_scale=scale, warnings=warnings, what="IMU"), warnings
+    )
+    times = folder / "frame_timestamps.txt"
+    if not times.is_file():
+        times = folder / "movie_metadata.csv"
+    if not times.is_file():
+        raise CaptureError("MARS folder lacks frame_timestamps.txt (Android) and movie_metadata.csv (iOS)", folder)
+    tscale = _time_scale(times)
+    # frame_timestamps.txt may separate fields by spaces; normalise through the table reader's comma split
+    table = read_table(times, 0, [], time_scale=tscale, warnings=warnings, what="frame")
+    if len(table) == 0:
+        raise CaptureError("no frame timestamps", times)
+    video_path = folder / "movie.mp4" if (folder / "movie.mp4").is_file() else find_video(folder)
+    if video_path is None:
+        raise CaptureError("MARS folder has no movie.mp4", folder)
+    video = VideoFrames(video_path)
+    n = match_frame_count(video, len(table), times, warnings)
+    table = table.select(slice(0, n))
+    ft, idx = frame_times(table, warnings)
+    cal = resolve_calibration(folder, calib)
+    return make_capture(folder, "mars", cal, imu, ft, lambda i: video(int(idx[i])), warnings)
