@@ -24,14 +24,19 @@ CSV_HEADER = "t_ns,track_id,u,v"
 
 
 def open_any_capture(capture_path: str | os.PathLike[str]) -> Any:
-    """The capture at `capture_path`: through `vio.readers.open_capture` when it exists, else the ASL reader."""
+    """The capture at `capture_path`, format detected by `vio.readers` (else read as ASL).
+
+    Tracking needs only the images and the camera calibration, so the estimator's final checks in
+    `vio.readers.open_capture` (an IMU stream, overlapping clocks) are not applied: `read_capture` is the same
+    reader without them. What tracking needs is checked by `track_capture` and the tracker.
+    """
     try:
-        from vio.readers import open_capture
+        from vio.readers import read_capture
     except ImportError:
         from vio.capture import read_asl
 
         return read_asl(capture_path)
-    return open_capture(capture_path)
+    return read_capture(capture_path)
 
 
 def track_capture(capture_path: str | os.PathLike[str], out_csv: str | os.PathLike[str], cfg: Config) -> dict:
