@@ -29,7 +29,7 @@ class TrackerConfig:
     fb_threshold_px: float = 0.5  # forward-backward consistency threshold, px
     ransac_threshold_px: float = 1.0  # essential-matrix inlier threshold, in pixels at the focal length
     border_px: int = 8  # features closer than this to the border are dropped
-    subpix_window: int = 5  # half-size of the cornerSubPix search window for new corners, px
+    subpix_window: int = 3  # half-size of the cornerSubPix search window for new corners (0: off), px
     essential_method: str = "usac_magsac"  # usac_magsac | usac_accurate | usac_default | ransac | none
     essential_min_flow_px: float = 1.0  # skip the essential-matrix check below this median flow, px
 
