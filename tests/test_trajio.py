@@ -103,3 +103,17 @@ def test_missing_file(tmp_path):
 def test_shape_mismatch_rejected():
     with pytest.raises(ValueError, match="shapes disagree"):
         Trajectory(np.zeros(3, np.int64), np.zeros((2, 3)), np.zeros((3, 4)))
+
+
+def test_tum_header_without_hash(tmp_path):
+    p = tmp_path / "est.txt"
+    p.write_text("timestamp tx ty tz qx qy qz qw\n1.5 1 2 3 0 0 0 1\n2.5 1 2 4 0 0 0 1\n")
+    np.testing.assert_array_equal(read_trajectory(p).t_ns, [1_500_000_000, 2_500_000_000])
+
+
+def test_capture_folder_reads_its_groundtruth(sim_capture, tmp_path):
+    root = sim_capture("orbit", duration_s=4.0, imu="ideal", images=False)
+    traj = read_trajectory(root)
+    assert len(traj) > 100 and np.all(np.diff(traj.t_ns) > 0)
+    with pytest.raises(CaptureError, match="is a folder"):
+        read_trajectory(tmp_path)

@@ -129,8 +129,10 @@ def _read_tum(path: Path, lines: list[tuple[int, str]]) -> Trajectory:
     t_ns: list[int] = []
     vals: list[list[float]] = []
     rows: list[int] = []
-    for lineno, s in lines:
+    for k, (lineno, s) in enumerate(lines):
         fields = s.split()
+        if k == 0 and fields[0][:1].isalpha():
+            continue  # a header row without '#'
         if len(fields) != 8:
             raise CaptureError(f"TUM row needs 8 fields 't x y z qx qy qz qw', found {len(fields)}", path, lineno)
         try:
