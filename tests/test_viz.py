@@ -155,6 +155,19 @@ def test_default_blueprint_is_in_the_recording(recording):
     assert res.stdout.count("ViewBlueprint:class") >= 10  # 3D, camera and 8 time series views
 
 
+def test_feature_colours_follow_track_age():
+    import cv2
+
+    from vio.viz import AGE_SATURATION_FRAMES, _colormap
+
+    ages = np.array([0, AGE_SATURATION_FRAMES // 2, AGE_SATURATION_FRAMES, 10 * AGE_SATURATION_FRAMES])
+    rgb = _colormap(ages, 0.0, AGE_SATURATION_FRAMES, cv2.COLORMAP_VIRIDIS)
+    assert rgb.shape == (4, 3) and rgb.dtype == np.uint8
+    assert len({tuple(c) for c in rgb[:3]}) == 3  # young, middle-aged and old tracks look different
+    assert (rgb[2] == rgb[3]).all()  # saturates
+    assert rgb[0, 2] > rgb[0, 1] and rgb[2, 1] > rgb[2, 2]  # viridis: young purple-blue, old yellow (RGB order)
+
+
 def _listening(pid: int) -> list[tuple[str, int]]:
     psutil = pytest.importorskip("psutil")
 
@@ -184,3 +197,47 @@ def test_serve_binds_only_loopback(euroc):
     finally:
         viewer.stop()
     assert viewer.process.poll() is not None
+
+
+class _NullSink:
+    def on_start(self, *a) -> None: ...
+    def on_frame(self, *a) -> None: ...
+    def on_estimate(self, *a) -> None: ...
+    def close(self) -> None: ...
+
+
+def bench(capture_dir: str, repeats: int = 5) -> None:
+    """Print the sink's cost: wall ms per frame inside its calls (median, p95) and the extra process CPU per frame
+    (all threads, so rerun's encoder and file writer count) of feeding the capture with the sink over without it."""
+    import tempfile
+
+    from vio.viz import make_rerun_sink
+
+    capture = read_asl(capture_dir)
+    frames = [f.image for f in capture.frames()]  # decode once so PNG reading is not part of any figure
+    capture.load_image = lambda i: frames[i]
+    cpu_none: list[float] = []
+    for r in range(repeats):
+        for name in ("none", "rrd"):
+            with tempfile.TemporaryDirectory() as d:
+                timings: list[float] = []
+                c0 = time.process_time()
+                sink = _NullSink() if name == "none" else make_rerun_sink(rrd=Path(d) / "b.rrd")
+                feed(sink, capture, timings=timings)
+                sink.close()
+                cpu = time.process_time() - c0
+                size = (Path(d) / "b.rrd").stat().st_size if name == "rrd" else 0
+            ms = np.array(timings) * 1e3
+            if name == "none":
+                cpu_none.append(cpu)
+                continue
+            extra = (cpu - cpu_none[-1]) / len(ms) * 1e3
+            print(
+                f"run {r}: {len(ms)} frames, sink call wall ms/frame median {np.median(ms):.2f} "
+                f"p95 {np.percentile(ms, 95):.2f}; extra CPU {extra:.2f} ms/frame; rrd {size / 1e6:.1f} MB"
+            )
+
+
+if __name__ == "__main__":
+    if len(sys.argv) >= 2 and sys.argv[1] == "--bench":
+        bench(sys.argv[2] if len(sys.argv) > 2 else str(ROOT.parent / "shared" / "data" / "euroc_v1_01"))

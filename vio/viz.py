@@ -23,22 +23,29 @@ from vio.viz_server import ViewerProcess, start_viewer_process
 
 log = logging.getLogger(__name__)
 
-IMAGE_MAX_WIDTH_PX = 400  # images are downscaled to at most this width before JPEG encoding
+IMAGE_MAX_WIDTH_PX = 400  # images are downscaled by an integer factor to at most this width, then JPEG-encoded
 JPEG_QUALITY = 75
 AGE_SATURATION_FRAMES = 30  # track age at which the feature colour stops changing
-FEATURE_RADIUS_PX = 2.0  # in the downscaled image
-LANDMARK_RADIUS_M = 0.004
+FEATURE_RADIUS = rr.Radius.ui_points(3.0)  # screen size, whatever the zoom
+LANDMARK_RADIUS = rr.Radius.ui_points(2.0)
+LINE_RADIUS = rr.Radius.ui_points(1.5)
 XYZ_COLORS = np.array([[230, 60, 60], [60, 180, 60], [60, 100, 230]], np.uint8)  # x, y, z series
 GT_XYZ_COLORS = np.array([[240, 160, 160], [160, 220, 160], [160, 180, 240]], np.uint8)  # lighter: ground truth
 EST_COLOR = [255, 140, 0]
 GT_COLOR = [40, 200, 255]
 
 
+_LUTS: dict[int, np.ndarray] = {}
+
+
 def _colormap(values: np.ndarray, lo: float, hi: float, cmap: int) -> np.ndarray:
     """(N,) floats -> (N, 3) uint8 RGB through an OpenCV colour map, with lo..hi spread over the map."""
+    lut = _LUTS.get(cmap)
+    if lut is None:
+        ramp = np.arange(256, dtype=np.uint8).reshape(-1, 1)
+        lut = _LUTS[cmap] = cv2.applyColorMap(ramp, cmap).reshape(-1, 3)[:, ::-1].copy()
     span = max(hi - lo, 1e-9)
-    idx = np.clip((np.asarray(values, float) - lo) / span * 255.0, 0, 255).astype(np.uint8).reshape(-1, 1)
-    return cv2.applyColorMap(idx, cmap).reshape(-1, 3)[:, ::-1].copy()
+    return lut[np.clip((np.asarray(values, float) - lo) / span * 255.0, 0, 255).astype(np.intp)]
 
 
 def _time_column(t_ns: np.ndarray) -> rr.TimeColumn:
@@ -66,7 +73,7 @@ class RerunSink:
         rec.log(bp.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         if camera is not None:
             self._body_T_cam = np.asarray(camera.body_T_cam, float)
-            self._scale = min(1.0, IMAGE_MAX_WIDTH_PX / camera.width)
+            self._scale = 1.0 / int(np.ceil(camera.width / IMAGE_MAX_WIDTH_PX))
             s = self._scale
             # rerun puts pixel corners on integers, OpenCV pixel centres: shift by half a pixel, then scale.
             K = np.array(
@@ -81,7 +88,7 @@ class RerunSink:
             rec.send_columns(bp.PLOT_ACC, times, rr.Scalars.columns(scalars=imu.acc).partition([3] * len(imu)))
         if ground_truth is not None and len(ground_truth):
             gt = ground_truth
-            rec.log(bp.TRAJ_GT, rr.LineStrips3D([gt.p_world], colors=[GT_COLOR], radii=[0.003]), static=True)
+            rec.log(bp.TRAJ_GT, rr.LineStrips3D([gt.p_world], colors=[GT_COLOR], radii=LINE_RADIUS), static=True)
             times = [_time_column(gt.t_ns)]
             lens = [3] * len(gt)
             for path, values in ((bp.PLOT_VEL, gt.v_world), (bp.PLOT_BIAS_GYRO, gt.b_w), (bp.PLOT_BIAS_ACC, gt.b_a)):
@@ -114,7 +121,7 @@ class RerunSink:
             self.rec.log(bp.IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
         uv_rr = (np.asarray(uv, float).reshape(-1, 2) + 0.5) * self._scale
         colors = _colormap(ages, 0.0, AGE_SATURATION_FRAMES, cv2.COLORMAP_VIRIDIS)
-        self.rec.log(bp.FEATURES, rr.Points2D(uv_rr, colors=colors, radii=FEATURE_RADIUS_PX))
+        self.rec.log(bp.FEATURES, rr.Points2D(uv_rr, colors=colors, radii=FEATURE_RADIUS))
 
     def on_estimate(self, estimate: StateEstimate, stats: dict[str, Any]) -> None:
         """Camera pose, trajectory so far, landmarks, velocity, biases and solver scalars at the keyframe time."""
@@ -124,12 +131,12 @@ class RerunSink:
         world_T_cam = world_T_body @ self._body_T_cam
         rec.log(bp.CAMERA, rr.Transform3D(translation=world_T_cam[:3, 3], mat3x3=world_T_cam[:3, :3]))
         self._traj.append(world_T_body[:3, 3].copy())
-        rec.log(bp.TRAJ_EST, rr.LineStrips3D([np.array(self._traj)], colors=[EST_COLOR], radii=[0.004]))
+        rec.log(bp.TRAJ_EST, rr.LineStrips3D([np.array(self._traj)], colors=[EST_COLOR], radii=LINE_RADIUS))
         pts = np.asarray(estimate.landmarks_world, float).reshape(-1, 3)
         if pts.shape[0]:
             lo, hi = np.percentile(pts[:, 2], [2, 98])
             colors = _colormap(pts[:, 2], lo, hi, cv2.COLORMAP_TURBO)
-            rec.log(bp.LANDMARKS, rr.Points3D(pts, colors=colors, radii=LANDMARK_RADIUS_M))
+            rec.log(bp.LANDMARKS, rr.Points3D(pts, colors=colors, radii=LANDMARK_RADIUS))
         else:
             rec.log(bp.LANDMARKS, rr.Clear(recursive=False))
         rec.log(f"{bp.PLOT_VEL}/{bp.EST}", rr.Scalars(np.asarray(estimate.v_world, float)))

@@ -39,17 +39,31 @@ REPROJ_PX = f"{PLOT_SOLVER}/reproj_px_median"
 NUM_LANDMARKS = f"{PLOT_SOLVER}/num_landmarks"
 
 
+IMU_WINDOW_S = 10.0  # the IMU plots show this much history before the time cursor
+
+
+def _series(origin: str, name: str, window_s: float | None = None) -> rrb.TimeSeriesView:
+    """A time series view showing data up to the time cursor (the last `window_s` seconds, or all of it)."""
+    start = (
+        rrb.TimeRangeBoundary.infinite()
+        if window_s is None
+        else rrb.TimeRangeBoundary.cursor_relative(seconds=-window_s)
+    )
+    visible = rrb.VisibleTimeRange(TIMELINE, start=start, end=rrb.TimeRangeBoundary.cursor_relative())
+    return rrb.TimeSeriesView(origin=origin, name=name, time_ranges=visible)
+
+
 def default_blueprint() -> rrb.Blueprint:
     """3D scene big on the left; camera image and the time series panels on the right."""
     series = rrb.Grid(
-        rrb.TimeSeriesView(origin=PLOT_GYRO, name="gyro (rad/s)"),
-        rrb.TimeSeriesView(origin=PLOT_ACC, name="accelerometer (m/s²)"),
-        rrb.TimeSeriesView(origin=PLOT_VEL, name="velocity (m/s)"),
-        rrb.TimeSeriesView(origin=PLOT_BIAS_GYRO, name="gyro bias (rad/s)"),
-        rrb.TimeSeriesView(origin=PLOT_BIAS_ACC, name="acc bias (m/s²)"),
-        rrb.TimeSeriesView(origin=SOLVE_MS, name="solve time (ms)"),
-        rrb.TimeSeriesView(origin=REPROJ_PX, name="reprojection error (px)"),
-        rrb.TimeSeriesView(origin=NUM_LANDMARKS, name="landmarks"),
+        _series(PLOT_GYRO, "gyro (rad/s)", IMU_WINDOW_S),
+        _series(PLOT_ACC, "accelerometer (m/s²)", IMU_WINDOW_S),
+        _series(PLOT_VEL, "velocity (m/s)"),
+        _series(PLOT_BIAS_GYRO, "gyro bias (rad/s)"),
+        _series(PLOT_BIAS_ACC, "acc bias (m/s²)"),
+        _series(SOLVE_MS, "solve time (ms)"),
+        _series(REPROJ_PX, "reprojection error (px)"),
+        _series(NUM_LANDMARKS, "landmarks"),
         grid_columns=2,
     )
     right = rrb.Vertical(rrb.Spatial2DView(origin=IMAGE, name="camera"), series, row_shares=[2, 3])
