@@ -93,7 +93,7 @@ def unit_problems(imu: ImuSeries, path: Path) -> list[str]:
         )
     s, _ = gyro_scale_vs_gravity(imu)
     w99 = float(np.percentile(np.linalg.norm(imu.gyro, axis=1), 99))
-    if (np.isfinite(s) and 0.3 * DEG < s < 3.0 * DEG) or w99 > 35.0:
+    if (np.isfinite(s) and 0.3 * DEG < s < 3.0 * DEG) or w99 > 20.0:
         detail = f"gravity turns {s:.4f}x as fast as the gyro says" if np.isfinite(s) else f"99% |w| = {w99:.0f}"
         problems.append(f"{path}: gyro looks like it is in deg/s ({detail}); expected rad/s")
     return problems
