@@ -44,12 +44,13 @@ class Table:
 
 def _parse_time(text: str, scale: int) -> int:
     """Parse a timestamp in a unit of `scale` ns (1: ns, 10**9: s) exactly into integer ns."""
-    if scale == 1 and text.isdigit():
-        return int(text)
     try:
-        return int(Decimal(text) * scale)
-    except (InvalidOperation, ValueError, OverflowError):
+        t = int(text) if scale == 1 and text.isdigit() else int(Decimal(text) * scale)
+    except (InvalidOperation, ValueError, ArithmeticError):
         raise ValueError(text) from None
+    if not -(2**63) < t < 2**63:
+        raise ValueError(text)
+    return t
 
 
 def read_lines(path: Path) -> tuple[list[str], bool]:

@@ -86,6 +86,8 @@ def unit_problems(imu: ImuSeries, path: Path) -> list[str]:
     a = float(np.median(np.linalg.norm(imu.acc, axis=1)))
     if 0.6 <= a <= 1.6:
         problems.append(f"{path}: accelerometer looks like it is in g (median |a| = {a:.2f}); expected m/s^2")
+    elif a > 100.0:
+        problems.append(f"{path}: implausible accelerometer values (median |a| = {a:.3g} m/s^2)")
     elif a < 0.6:
         problems.append(
             f"{path}: accelerometer has no gravity (median |a| = {a:.2f} m/s^2): this is linear acceleration; "
