@@ -94,6 +94,9 @@ def describe(cap: Capture, offset: bool = True) -> list[str]:
                 f"timeshift_cam_imu; correlation {est.correlation:.2f} over {est.pairs} frame pairs)"
                 + (f" [{est.note}]" if est.note else "")
             )
+            lines.append(
+                f"  image rotation rate / gyro rate: {est.rate_ratio:.3f} (1: consistent; 0.017: gyro in deg/s)"
+            )
     for w in cap.warnings:
         lines.append(f"warning: {w}")
     return lines

@@ -29,6 +29,7 @@ class OffsetEstimate:
     correlation: float  # Pearson correlation of camera vs gyro rotation rates at the chosen offset
     pairs: int  # frame pairs with a rotation estimate
     note: str  # why it is unreliable, or ""
+    rate_ratio: float = float("nan")  # image rotation rate / gyro rotation rate at the offset (1: gyro in rad/s)
 
 
 def _bearings(xn: np.ndarray) -> np.ndarray:
@@ -149,4 +150,6 @@ def estimate_time_offset(cap: Capture, max_offset_s: float = 0.3, max_pairs: int
     note = "" if corr[k] >= 0.5 else "weak correlation: the estimate is unreliable"
     if k in (0, len(corr) - 1):
         note = f"best offset at the search limit (+-{max_offset_s:g} s): unreliable"
-    return OffsetEstimate(int(round(best)), float(corr[k]), int(ang.size), note)
+    gk = gyro_rate[k]
+    ratio = float(np.dot(gk, cam_rate) / max(float(np.dot(gk, gk)), 1e-12))
+    return OffsetEstimate(int(round(best)), float(corr[k]), int(ang.size), note, ratio)

@@ -1,0 +1,69 @@
+"""`vio info` and the camera-IMU time-offset estimate."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tests.conftest import ROOT, shared_path
+from tests.rotation_capture import rotation_capture
+from tests.writers.phone import write_mars
+from vio.info import capture_info
+from vio.readers.offset import estimate_time_offset, pair_rotation
+
+
+@pytest.mark.parametrize("offset_s", [0.025, -0.04])
+def test_time_offset_is_recovered_from_rotation_rates(offset_s):
+    cap = rotation_capture(duration_s=4.0, fps=20.0, offset_s=offset_s)
+    est = estimate_time_offset(cap)
+    assert est.offset_ns is not None and est.note == ""
+    assert abs(est.offset_ns * 1e-9 - offset_s) < 0.002
+    assert est.correlation > 0.95 and est.pairs > 60
+    assert abs(est.rate_ratio - 1.0) < 0.05
+
+
+def test_essential_matrix_rotation_with_translation():
+    """Pairs with parallax take the essential-matrix path; the rotation angle is still right."""
+    rng = np.random.default_rng(3)
+    p_w = np.column_stack([rng.uniform(-1, 1, 200), rng.uniform(-1, 1, 200), rng.uniform(1.5, 4.0, 200)])
+    R = Rotation.from_rotvec([0.01, 0.04, -0.02]).as_matrix()
+    t = np.array([0.15, -0.02, 0.05])
+    p_c1 = p_w @ R.T + t
+    xn0 = p_w[:, :2] / p_w[:, 2:]
+    xn1 = p_c1[:, :2] / p_c1[:, 2:]
+    angle = pair_rotation(xn0, xn1, focal_px=500.0)
+    assert angle is not None and abs(angle - np.linalg.norm([0.01, 0.04, -0.02])) < 1e-3
+
+
+def test_static_capture_reports_no_offset_and_real_streams():
+    text = capture_info(shared_path("euroc_v1_01"))
+    assert "format: asl" in text and "95 frames, 20.00 Hz" in text
+    assert "29120 samples, 200.0 Hz" in text and "gaps: none" in text
+    assert "ground truth: 2895 poses" in text
+    assert "not estimated (too little rotation to correlate)" in text
+
+
+def test_cli_info_on_a_phone_capture(tmp_path):
+    cap = rotation_capture(duration_s=3.0, fps=20.0, offset_s=0.03)
+    write_mars(cap, tmp_path / "mars")
+    r = subprocess.run(
+        [sys.executable, "-m", "vio.cli", "info", str(tmp_path / "mars")], capture_output=True, text=True, cwd=ROOT
+    )
+    assert r.returncode == 0, r.stderr
+    assert "format: mars" in r.stdout and "60 frames, 20.00 Hz" in r.stdout
+    line = next(x for x in r.stdout.splitlines() if x.startswith("camera-IMU time offset"))
+    ms = float(line.split(":")[1].split("ms")[0])
+    assert abs(ms - 30.0) < 2.0
+
+
+def test_info_lists_problems_instead_of_failing(tmp_path):
+    cap = rotation_capture(duration_s=2.0, fps=20.0)
+    path = write_mars(cap, tmp_path / "mars")
+    (path / "calib.yaml").unlink()
+    text = capture_info(path)
+    assert "calibration: MISSING" in text
+    assert "warning:" in text and "no camera calibration" in text
