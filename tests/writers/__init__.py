@@ -15,8 +15,6 @@ from vio.capture import Capture
 from vio.geometry import inv_T
 from vio.records import CameraCalib, ImuCalib
 
-FFV1 = cv2.VideoWriter_fourcc(*"FFV1")  # lossless in .mp4/.mkv with the FFmpeg in opencv-python-headless
-
 
 def calib_yaml_text(camera: CameraCalib, imu: ImuCalib | None, timeshift_cam_imu_s: float = 0.0) -> str:
     """A Kalibr camchain (cam0 with T_cam_imu) plus an imu0 section with the Kalibr noise keys."""
@@ -50,12 +48,12 @@ def write_calib(folder: Path, cap: Capture, timeshift_cam_imu_s: float = 0.0) ->
     return path
 
 
-def write_video(path: Path, cap: Capture, fps: float | None = None) -> int:
-    """All frames of `cap` as a lossless FFV1 video (grayscale); returns the number written."""
+def write_video(path: Path, cap: Capture, fps: float | None = None, fourcc: str = "FFV1") -> int:
+    """All frames of `cap` as a grayscale video (FFV1: lossless; "mp4v"/"MJPG": lossy); returns the count."""
     first = cap.load_image(0)
     h, w = first.shape[:2]
     rate = fps or (cap.camera.rate_hz if cap.camera else 20.0)
-    vw = cv2.VideoWriter(str(path), FFV1, rate, (w, h), isColor=False)
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), rate, (w, h), isColor=False)
     assert vw.isOpened(), f"cannot open a video writer for {path}"
     for i in range(cap.num_frames):
         vw.write(cap.load_image(i))

@@ -14,10 +14,10 @@ from . import fmt_row, write_calib, write_video
 STANDARD_G = 9.80665
 
 
-def write_mars(cap: Capture, out: Path) -> Path:
+def write_mars(cap: Capture, out: Path, fourcc: str = "FFV1") -> Path:
     """Android MARS layout: movie.mp4 (lossless FFV1 here; H.264 on the phone), frame_timestamps.txt, gyro_accel.csv."""
     out.mkdir(parents=True)
-    write_video(out / "movie.mp4", cap)
+    write_video(out / "movie.mp4", cap, fourcc=fourcc)
     (out / "frame_timestamps.txt").write_text("".join(f"{int(t)}\n" for t in cap.frame_t_ns))
     lines = ["Timestamp[nanosec],gx[rad/s],gy[rad/s],gz[rad/s],ax[m/s^2],ay[m/s^2],az[m/s^2],Unix time[nanosec]"]
     for t, w, a in zip(cap.imu.t_ns, cap.imu.gyro, cap.imu.acc, strict=True):
@@ -27,11 +27,11 @@ def write_mars(cap: Capture, out: Path) -> Path:
     return out
 
 
-def write_opencamera(cap: Capture, out: Path, name: str = "VID_20240101_120000") -> Path:
+def write_opencamera(cap: Capture, out: Path, name: str = "VID_20240101_120000", fourcc: str = "FFV1") -> Path:
     """OpenCamera Sensors: video in `out`, CSVs (x,y,z,t_ns, no header) in `out/<date>/`; returns the CSV folder."""
     csv_dir = out / name[4:]
     csv_dir.mkdir(parents=True)
-    write_video(out / f"{name}.mp4", cap)
+    write_video(out / f"{name}.mp4", cap, fourcc=fourcc)
     g = "".join(f"{fmt_row(w)},{int(t)}\n" for t, w in zip(cap.imu.t_ns, cap.imu.gyro, strict=True))
     a = "".join(f"{fmt_row(v)},{int(t)}\n" for t, v in zip(cap.imu.t_ns, cap.imu.acc, strict=True))
     (csv_dir / f"{name}_gyro.csv").write_text(g)
@@ -50,7 +50,12 @@ def _xyz_csv(path: Path, t_ns: np.ndarray, xyz: np.ndarray) -> None:
 
 
 def write_sensorlogger(
-    cap: Capture, out: Path, platform: str = "Android", camera: str = "video", total: bool | None = None
+    cap: Capture,
+    out: Path,
+    platform: str = "Android",
+    camera: str = "video",
+    total: bool | None = None,
+    fourcc: str = "FFV1",
 ) -> Path:
     """Sensor Logger export. Android: TotalAcceleration.csv (unless total=False) plus Accelerometer.csv (user
     acceleration) and Gravity.csv; iOS: Accelerometer.csv + Gravity.csv in CoreMotion's sign convention.
@@ -76,7 +81,7 @@ def write_sensorlogger(
     cam = out / "Camera"
     if camera.startswith("video"):
         cam.mkdir()
-        write_video(cam / f"{int(cap.frame_t_ns[0]) // 1_000_000}.mp4", cap)
+        write_video(cam / f"{int(cap.frame_t_ns[0]) // 1_000_000}.mp4", cap, fourcc=fourcc)
         if camera == "video":
             (cam / "frame_times.csv").write_text("".join(f"{int(x)}\n" for x in cap.frame_t_ns))
     elif camera == "images":
