@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from vio.errors import CaptureError
 from vio.evaluate import evaluate_files
-from vio.metrics import align_posyaw, associate, evaluate, path_distances, segment_pairs, umeyama
+from vio.metrics import align_posyaw, associate, evaluate, interpolate, path_distances, segment_pairs, umeyama
 from vio.trajio import Trajectory, write_tum
 
 T0_NS = 1_700_000_000_000_000_000
@@ -179,3 +179,22 @@ def test_evaluate_files_and_cli(tmp_path):
     assert "Sim3" in out.stdout and "RPE" in out.stdout
     bad = subprocess.run([*cmd[:-1], str(tmp_path / "missing.tum")], capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "Traceback" not in bad.stderr and "not found" in bad.stderr
+
+
+def test_interpolated_sync_removes_the_time_offset_error():
+    gt = make_gt(rate_hz=200.0)
+    t_est = gt.t_ns[5::40] + 2_500_000  # 10 Hz, half-way between ground-truth samples
+    ts = (t_est - T0_NS) * 1e-9
+    p = np.column_stack([2 * np.cos(0.25 * ts), 2 * np.sin(0.25 * ts), 1 + 0.4 * np.sin(0.6 * ts)])
+    rv = np.column_stack([0.2 * np.sin(ts), 0.3 * np.cos(0.4 * ts), 0.25 * ts])
+    est = Trajectory(t_est, p, Rotation.from_rotvec(rv).as_quat()[:, [3, 0, 1, 2]])
+    nearest = evaluate(gt, est, align="none")
+    interp = evaluate(gt, est, align="none", sync="interpolate")
+    assert interp["pairs"] == nearest["pairs"] == len(est)
+    assert nearest["ate_rmse_m"] > 5e-4  # 2.5 ms at about 0.5 m/s
+    assert interp["ate_rmse_m"] < 1e-5 and interp["ate_rot_rmse_deg"] < 1e-3  # interpolation error only
+    mid = interpolate(gt, gt.t_ns[:1] + 2_500_000)  # half-way: the mean position, the half rotation
+    np.testing.assert_allclose(mid.p_world[0], gt.p_world[:2].mean(axis=0))
+    half = Rotation.from_quat(gt.q_wxyz[0, [1, 2, 3, 0]]).inv() * Rotation.from_quat(mid.q_wxyz[0, [1, 2, 3, 0]])
+    full = Rotation.from_quat(gt.q_wxyz[0, [1, 2, 3, 0]]).inv() * Rotation.from_quat(gt.q_wxyz[1, [1, 2, 3, 0]])
+    np.testing.assert_allclose(2 * half.as_rotvec(), full.as_rotvec(), atol=1e-12)

@@ -54,18 +54,20 @@ def evaluate_files(
     est_path: str | os.PathLike[str],
     align: str = "se3",
     json_out: str | os.PathLike[str] | None = None,
+    sync: str = "nearest",
 ) -> str:
     """Score `est_path` against `gt_path` (TUM or EuRoC CSV each); optionally write the metrics as JSON atomically.
 
-    Returns the report text. Raises CaptureError (one line, naming the files) on unreadable or non-overlapping
-    input.
+    `sync` is `nearest` (evo's default association) or `interpolate` (ground truth interpolated at the estimate's
+    times when it is the denser one). Returns the report text. Raises CaptureError (one line, naming the files)
+    on unreadable or non-overlapping input.
     """
     if align not in ALIGNMENTS:
         raise CaptureError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     gt = read_trajectory(gt_path)
     est = read_trajectory(est_path)
     try:
-        metrics = evaluate(gt, est, align=align)
+        metrics = evaluate(gt, est, align=align, sync=sync)
     except CaptureError as exc:
         raise CaptureError(f"{exc} (ground truth {gt_path}, estimate {est_path})") from None
     metrics["gt_path"] = str(gt_path)

@@ -4,7 +4,8 @@ Our own small module (evo is GPL and lacks the 4-DoF alignment VIO evaluation us
 against evo's command-line tools run as a separate program. Definitions (all on the associated pose pairs):
 
 - association: each pose of the shorter trajectory is paired with the nearest-in-time pose of the other one,
-  if within `max_dt_s` (10 ms by default), as evo's `nearest_time` does;
+  if within `max_dt_s` (10 ms by default), as evo's `nearest_time` does; with `sync="interpolate"` the longer
+  trajectory is instead interpolated (linear position, slerp) at the paired times, as evo's `interpolation`;
 - alignment maps the estimate onto the ground truth: `se3`/`sim3` by Umeyama's least squares on positions
   (sim3 with scale), `posyaw` by rotation about the gravity axis z plus translation (the 4 unobservable DoF of
   VIO), `none` leaves it as is;
@@ -50,6 +51,41 @@ def associate(gt: Trajectory, est: Trajectory, max_dt_s: float = 0.01) -> tuple[
     ok = np.abs(long_.t_ns[best] - short.t_ns) <= max_dt
     i_short, i_long = np.flatnonzero(ok), best[ok]
     return (i_long, i_short) if short is est else (i_short, i_long)
+
+
+def interpolate(traj: Trajectory, t_ns: np.ndarray) -> Trajectory:
+    """Poses at t_ns: positions linear, orientations slerped between the neighbouring poses (clamped at the ends)."""
+    t_ns = np.asarray(t_ns, np.int64)
+    idx = np.clip(np.searchsorted(traj.t_ns, t_ns, side="left"), 1, len(traj) - 1)
+    t_prev, t_next = traj.t_ns[idx - 1], traj.t_ns[idx]
+    frac = np.clip((t_ns - t_prev) / (t_next - t_prev), 0.0, 1.0)
+    p = traj.p_world[idx - 1] + frac[:, None] * (traj.p_world[idx] - traj.p_world[idx - 1])
+    r_prev = Rotation.from_quat(traj.q_wxyz[idx - 1][:, [1, 2, 3, 0]])
+    r_next = Rotation.from_quat(traj.q_wxyz[idx][:, [1, 2, 3, 0]])
+    r = r_prev * Rotation.from_rotvec((r_prev.inv() * r_next).as_rotvec() * frac[:, None])
+    return Trajectory(t_ns, p, r.as_quat()[:, [3, 0, 1, 2]])
+
+
+def synchronize(
+    gt: Trajectory, est: Trajectory, max_dt_s: float = 0.01, sync: str = "nearest"
+) -> tuple[Trajectory, Trajectory]:
+    """Pose-by-pose matched copies of (gt, est).
+
+    `nearest`: the associated poses themselves. `interpolate`: the sparser trajectory's associated poses, and the
+    denser trajectory interpolated at exactly their times (evo's `--sync_method interpolation`).
+    """
+    i_gt, i_est = associate(gt, est, max_dt_s)
+    if sync == "nearest" or i_gt.size == 0:
+        return gt.subset(i_gt), est.subset(i_est)
+    if sync != "interpolate":
+        raise ValueError(f"unknown sync {sync!r}; choose nearest or interpolate")
+    if len(gt) < 2 or len(est) < 2:
+        raise CaptureError("interpolation needs at least 2 poses in each trajectory")
+    if len(est) > len(gt):
+        g = gt.subset(i_gt)
+        return g, interpolate(est, g.t_ns)
+    e = est.subset(i_est)
+    return interpolate(gt, e.t_ns), e
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
@@ -142,17 +178,17 @@ def evaluate(
     segments_m: tuple[float, ...] = DEFAULT_SEGMENTS_M,
     rpe_rel_tol: float = 0.1,
     coverage_gap_s: float = 1.0,
+    sync: str = "nearest",
 ) -> dict:
     """Score an estimated trajectory against ground truth (see the module docstring for the definitions)."""
     if align not in ALIGNMENTS:
         raise ValueError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
-    i_gt, i_est = associate(gt, est, max_dt_s)
-    if i_gt.size < 3:
+    g, e = synchronize(gt, est, max_dt_s, sync)
+    if len(g) < 3:
         raise CaptureError(
-            f"only {i_gt.size} estimated pose(s) within {max_dt_s * 1e3:g} ms of a ground-truth pose; need >= 3 "
+            f"only {len(g)} estimated pose(s) within {max_dt_s * 1e3:g} ms of a ground-truth pose; need >= 3 "
             "(do the clocks overlap?)"
         )
-    g, e = gt.subset(i_gt), est.subset(i_est)
     s, R, t = alignment(g.p_world, e.p_world, align)
     p_aligned = s * e.p_world @ R.T + t
     R_aligned = R @ e.world_R_body()
@@ -182,7 +218,8 @@ def evaluate(
     coverage_s = float(steps[steps <= coverage_gap_s].sum())
     return {
         "align": align,
-        "pairs": int(i_gt.size),
+        "sync": sync,
+        "pairs": len(g),
         "gt_poses": len(gt),
         "est_poses": len(est),
         "ate_rmse_m": float(np.sqrt(np.mean(pos_err**2))),
