@@ -26,7 +26,8 @@ def format_report(metrics: dict, gt_name: str = "ground truth", est_name: str = 
     m = metrics
     lines = [
         f"{est_name} vs {gt_name}",
-        f"  poses      {m['pairs']} associated ({m['est_poses']} estimated, {m['gt_poses']} ground truth)",
+        f"  poses      {m['pairs']} associated by {m.get('sync', 'nearest')} time ({m['est_poses']} estimated, "
+        f"{m['gt_poses']} ground truth)",
         f"  coverage   {m['coverage_s']:.2f} s of {m['gt_span_s']:.2f} s ground truth "
         f"({100 * m['coverage_frac']:.1f} %)",
         f"  alignment  {_ALIGN_NAMES[m['align']]}",
