@@ -13,6 +13,8 @@ import numpy as np
 
 from vio.config import BackendConfig
 
+OUTLIER_FACTOR = 2.5  # a view reprojecting beyond this many times max_reprojection_px is an outlier
+
 
 @dataclass
 class Track:
@@ -82,7 +84,12 @@ class LandmarkBook:
         return (uv_px - self.K[:2, 2]) / np.array([self.K[0, 0], self.K[1, 1]])
 
     def try_admit(self, j: int, world_T_body: dict[int, np.ndarray]) -> np.ndarray | None:
-        """Triangulate track j from the views whose pose is known; returns the world point (3,) if admissible."""
+        """Triangulate track j from the views whose pose is known; returns the world point (3,) if admissible.
+
+        Admissible: `min_views` views, `min_parallax_deg` of parallax, in front of every camera (> 5 cm), median
+        reprojection error within `max_reprojection_px`. Views reprojecting beyond `OUTLIER_FACTOR` times that
+        are dropped from the track (they never become factors); the point is re-triangulated without them.
+        """
         tr = self.tracks[j]
         ks = [k for k in tr.views if k in world_T_body]
         if len(ks) < self.cfg.min_views or len(ks) < tr.rejected_until:
@@ -95,8 +102,21 @@ class LandmarkBook:
         p = triangulate(Twc, xn)
         proj, z = project(Twc, p, self.K)
         err = np.linalg.norm(proj - uv, axis=1)
-        if np.all(z > 0.05) and np.all(np.isfinite(err)) and err.max() <= self.cfg.max_reprojection_px:
-            return p
+        good = err <= OUTLIER_FACTOR * self.cfg.max_reprojection_px
+        if np.isfinite(err).all() and np.median(err) <= self.cfg.max_reprojection_px and good.sum() >= len(ks) - 1:
+            if not good.all():
+                Twc, xn, uv = Twc[good], xn[good], uv[good]
+                for k in np.asarray(ks)[~good].tolist():
+                    del tr.views[k]
+                p = triangulate(Twc, xn)
+                proj, z = project(Twc, p, self.K)
+                err = np.linalg.norm(proj - uv, axis=1)
+            if (
+                len(uv) >= self.cfg.min_views
+                and np.all(z > 0.05)
+                and err.max() <= OUTLIER_FACTOR * self.cfg.max_reprojection_px
+            ):
+                return p
         tr.rejected_until = len(ks) + 1
         return None
 

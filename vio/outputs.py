@@ -1,0 +1,71 @@
+"""The run's output files, each written atomically: trajectory.tum, states.csv, landmarks.ply, run.json."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vio.atomic import atomic_open, write_json
+from vio.geometry import R_to_quat_wxyz
+from vio.records import StateEstimate
+from vio.trajio import Trajectory, write_tum
+
+STATES_HEADER = "t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
+
+
+def trajectory_of(states: list[StateEstimate]) -> Trajectory:
+    """Body (IMU) poses in world of the given keyframe states."""
+    t = np.array([s.t_ns for s in states], np.int64)
+    p = np.array([s.world_T_body[:3, 3] for s in states]).reshape(-1, 3)
+    q = (
+        R_to_quat_wxyz(np.array([s.world_T_body[:3, :3] for s in states])).reshape(-1, 4)
+        if states
+        else np.zeros((0, 4))
+    )
+    return Trajectory(t, p, q)
+
+
+def write_trajectory(path: str | Path, states: list[StateEstimate]) -> None:
+    """trajectory.tum: `t_s x y z qx qy qz qw`, IMU body in world, metres."""
+    write_tum(path, trajectory_of(states))
+
+
+def write_states(path: str | Path, states: list[StateEstimate]) -> None:
+    """states.csv: t_ns, position (m), q_wxyz, velocity (m/s, world), gyro bias (rad/s), accel bias (m/s^2)."""
+    traj = trajectory_of(states)
+    with atomic_open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(STATES_HEADER + "\n")
+        for s, q in zip(states, traj.q_wxyz, strict=True):
+            vals = (*s.world_T_body[:3, 3], *q, *s.v_world, *s.bias_gyro, *s.bias_acc)
+            f.write(f"{int(s.t_ns)}," + ",".join(f"{v:.9g}" for v in vals) + "\n")
+
+
+def write_landmarks_ply(path: str | Path, p_world: np.ndarray, rgb: np.ndarray, num_obs: np.ndarray) -> None:
+    """landmarks.ply (ASCII): x y z (m, world), red green blue (uint8), observation count per point."""
+    p_world = np.asarray(p_world, float).reshape(-1, 3)
+    rgb = np.asarray(rgb, np.uint8).reshape(-1, 3)
+    num_obs = np.asarray(num_obs, np.int64).reshape(-1)
+    header = [
+        "ply",
+        "format ascii 1.0",
+        "comment vio landmarks: world frame, metres",
+        f"element vertex {p_world.shape[0]}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+        "property int observations",
+        "end_header",
+    ]
+    with atomic_open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write("\n".join(header) + "\n")
+        for p, c, n in zip(p_world, rgb, num_obs, strict=True):
+            f.write(f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {c[0]} {c[1]} {c[2]} {n}\n")
+
+
+def write_run_json(path: str | Path, summary: dict[str, Any]) -> None:
+    write_json(path, summary)
