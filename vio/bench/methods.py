@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from vio.errors import EstimationError
-from vio.trajio import Trajectory, read_trajectory, write_tum
+from vio.trajio import write_tum
 
 log = logging.getLogger(__name__)
 
@@ -56,59 +56,59 @@ def run_imu_only(capture_dir: Path, out: Path) -> list[MethodOutput]:
 
 
 def _latencies(run: dict) -> np.ndarray | None:
-    """Per-keyframe update times (ms) from a run.json, whichever of the known layouts it uses."""
-    for key in ("keyframe_timings_ms", "per_keyframe_ms", "solve_ms"):
-        v = run.get(key) or (run.get("timings") or {}).get(key)
-        if isinstance(v, list) and v:
-            return np.asarray(v, float)
-    kfs = run.get("keyframes") or (run.get("timings") or {}).get("keyframes")
-    if isinstance(kfs, list) and kfs and isinstance(kfs[0], dict):
-        for key in ("total_ms", "update_ms", "solve_ms", "latency_ms"):
-            if key in kfs[0]:
-                return np.asarray([k.get(key, np.nan) for k in kfs], float)
-    return None
+    """Per-keyframe update times (ms) from a run.json (`keyframe_ms.per_keyframe`)."""
+    per = (run.get("keyframe_ms") or {}).get("per_keyframe")
+    return np.asarray(per, float) if isinstance(per, list) and per else None
+
+
+def _pipeline(capture_dir: Path, out: Path, overrides: tuple[str, ...], refine: bool) -> tuple[dict, float]:
+    """One `run_capture` into `out` with the progress bar off; returns (run.json, wall time s)."""
+    from vio.config import load_config
+    from vio.pipeline import run_capture
+
+    cfg = load_config(None, ["run.progress=false", *overrides])
+    t0 = time.perf_counter()
+    run_capture(capture_dir, out, cfg, refine=refine)
+    wall = time.perf_counter() - t0
+    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
+    if run.get("status") != "ok":
+        log.warning("%s: run status %s", out, run.get("status"))
+    return run, wall
+
+
+def _info(run: dict) -> dict:
+    keys = ("status", "initialisation", "num_keyframes", "num_states", "num_landmarks", "recoveries", "refine")
+    return {k: run[k] for k in keys if k in run}
 
 
 def run_vio(
     capture_dir: Path, out: Path, name: str = "vio", overrides: tuple[str, ...] = (), refine: bool = False
 ) -> list[MethodOutput]:
-    """The online estimator as shipped (`vio.pipeline.run_capture`); with `refine`, also its batch optimum."""
-    from vio.config import load_config
-    from vio.pipeline import run_capture
+    """The online estimator as shipped (`vio.pipeline.run_capture`); with `refine`, also its batch optimum.
 
-    cfg = load_config(None, list(overrides))
-    t0 = time.perf_counter()
-    run_capture(capture_dir, out, cfg, refine=refine or None)
-    wall = time.perf_counter() - t0
-    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
-    if run.get("status") not in (None, "ok", "success", "completed"):
-        log.warning("%s: run status %s", out, run.get("status"))
-    lat = _latencies(run)
-    info = {k: run[k] for k in ("status", "num_keyframes", "num_landmarks", "recoveries") if k in run}
-    outputs = [MethodOutput(name, _online_path(out, refine), wall, lat, "se3", info)]
-    if refine:
-        outputs.append(MethodOutput("batch", _refined_path(out), wall, None, "se3", info))
-    return outputs
-
-
-def _online_path(out: Path, refine: bool) -> Path:
-    for cand in ("trajectory_online.tum", "trajectory.tum"):
-        if (out / cand).exists() and (refine is False or cand != "trajectory.tum" or not _has_split(out)):
-            return out / cand
-    raise EstimationError(f"{out}: the pipeline wrote no trajectory")
-
-
-def _has_split(out: Path) -> bool:
-    return (out / "trajectory_online.tum").exists() or (out / "trajectory_refined.tum").exists()
-
-
-def _refined_path(out: Path) -> Path:
-    for cand in ("trajectory_refined.tum", "trajectory_batch.tum"):
-        if (out / cand).exists():
-            return out / cand
-    if (out / "trajectory_online.tum").exists() and (out / "trajectory.tum").exists():
-        return out / "trajectory.tum"
-    raise EstimationError(f"{out}: the pipeline wrote no separate refined trajectory")
+    The online estimate is the smoother's final estimate of every keyframe (trajectory.tum of a run without
+    `--refine`); its wall time excludes any refinement. The batch optimum is Levenberg-Marquardt over the same
+    factor graph after the online pass. When the pipeline writes the online trajectory of a refined run apart
+    (`trajectory_online.tum`), one run gives both; otherwise the online and the refined run are separate runs (same
+    deterministic frontend and graph) in `out/online` and `out`.
+    """
+    rows: list[MethodOutput] = []
+    if not refine:
+        run, wall = _pipeline(capture_dir, out, overrides, refine=False)
+        return [MethodOutput(name, out / "trajectory.tum", wall, _latencies(run), "se3", _info(run))]
+    run, wall = _pipeline(capture_dir, out, overrides, refine=True)
+    refine_s = float((run.get("refine") or {}).get("refine_s", 0.0))
+    if not (run.get("refine") or {}).get("refined", False):
+        raise EstimationError(f"{out}: the batch refinement did not run or failed; see run.json warnings")
+    if (out / "trajectory_online.tum").exists():
+        online = MethodOutput(name, out / "trajectory_online.tum", wall - refine_s, _latencies(run), "se3", _info(run))
+    else:
+        run_on, wall_on = _pipeline(capture_dir, out / "online", overrides, refine=False)
+        online = MethodOutput(
+            name, out / "online" / "trajectory.tum", wall_on, _latencies(run_on), "se3", _info(run_on)
+        )
+    rows += [online, MethodOutput("batch", out / "trajectory.tum", wall, None, "se3", _info(run))]
+    return rows
 
 
 def run_vision_only(capture_dir: Path, out: Path, overrides: tuple[str, ...] = ()) -> list[MethodOutput]:
@@ -119,7 +119,3 @@ def run_vision_only(capture_dir: Path, out: Path, overrides: tuple[str, ...] = (
         raise EstimationError("the backend has no IMU-free mode (BackendConfig.use_imu)")
     res = run_vio(capture_dir, out, "vision_only", (*overrides, "backend.use_imu=false"), refine=False)
     return [MethodOutput(r.method, r.trajectory, r.wall_s, r.latencies_ms, "sim3", r.info) for r in res]
-
-
-def read_estimate(path: Path) -> Trajectory:
-    return read_trajectory(path)

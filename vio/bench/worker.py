@@ -50,34 +50,36 @@ def _write_trace(path: Path, gt, est, metrics: dict) -> None:
             f.write(",".join(f"{v:.6f}" for v in row) + "\n")
 
 
-def score(case: Case, out, gt, capture_duration_s: float) -> dict[str, Any]:
-    """A results.json row for one MethodOutput `out` against the ground-truth Trajectory `gt`."""
+def score(case: Case, res, gt, capture_duration_s: float, folder: Path) -> dict[str, Any]:
+    """A results.json row for one MethodOutput `res` against the ground-truth Trajectory `gt`.
+
+    Writes `aligned_<method>.csv` (the error trace) and `metrics_<method>.json` (all metrics, RPE) into `folder`.
+    """
     from vio.metrics import evaluate
     from vio.trajio import read_trajectory
 
-    est = read_trajectory(out.trajectory)
-    row = empty_row(case, out.method)
+    est = read_trajectory(res.trajectory)
+    row = empty_row(case, res.method)
     m_sim3 = evaluate(gt, est, align="sim3")
     row["ate_sim3_m"] = m_sim3["ate_rmse_m"]
     row["scale"] = m_sim3["scale"]
     metrics = {"sim3": m_sim3}
-    if out.align != "sim3":  # a metric method: SE3 and 4-DoF alignments are meaningful
+    if res.align != "sim3":  # a metric method: SE3 and 4-DoF alignments are meaningful
         metrics["se3"] = evaluate(gt, est, align="se3")
         metrics["posyaw"] = evaluate(gt, est, align="posyaw")
         row["ate_se3_m"] = metrics["se3"]["ate_rmse_m"]
         row["ate_posyaw_m"] = metrics["posyaw"]["ate_rmse_m"]
-    trace = metrics[TRACE_ALIGN[out.align]]
+    trace = metrics[TRACE_ALIGN[res.align]]
     row["drift_pct"] = trace["drift_pct"]
-    row["rtf"] = out.wall_s / capture_duration_s if capture_duration_s > 0 else None
-    if out.latencies_ms is not None and np.isfinite(out.latencies_ms).any():
-        lat = out.latencies_ms[np.isfinite(out.latencies_ms)]
+    row["rtf"] = res.wall_s / capture_duration_s if capture_duration_s > 0 else None
+    if res.latencies_ms is not None and np.isfinite(res.latencies_ms).any():
+        lat = res.latencies_ms[np.isfinite(res.latencies_ms)]
         row["latency_ms_p50"] = float(np.percentile(lat, 50))
         row["latency_ms_p95"] = float(np.percentile(lat, 95))
         row["latency_ms_max"] = float(lat.max())
     row["peak_rss_mb"] = peak_rss_mb()
-    folder = Path(out.trajectory).parent
-    _write_trace(folder / f"aligned_{out.method}.csv", gt, est, trace)
-    write_json(folder / f"metrics_{out.method}.json", {"row": row, "info": out.info, "metrics": metrics})
+    _write_trace(folder / f"aligned_{res.method}.csv", gt, est, trace)
+    write_json(folder / f"metrics_{res.method}.json", {"row": row, "info": res.info, "metrics": metrics})
     return row
 
 
@@ -103,7 +105,7 @@ def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dic
     rows = []
     for o in outputs:
         try:
-            rows.append(score(case, o, gt, duration_s))
+            rows.append(score(case, o, gt, duration_s, out))
         except Exception as exc:  # noqa: BLE001 - one unscorable estimate must not lose the others
             row = empty_row(case, o.method)
             row["error"] = f"scoring failed: {exc.__class__.__name__}: {exc}"
