@@ -88,19 +88,22 @@ def feed(sink, capture: Capture, max_frames: int | None = None, timings: list[fl
     return k
 
 
-@pytest.fixture(scope="module")
-def euroc() -> Capture:
+@pytest.fixture(scope="module", params=["sim", "euroc"])
+def capture(request, sim_capture) -> Capture:
+    """A short simulated orbit (rendered images, exact ground truth) and the real EuRoC frames."""
+    if request.param == "sim":
+        return read_asl(sim_capture("orbit", 4.0))
     return read_asl(shared_path("euroc_v1_01"))
 
 
 @pytest.fixture(scope="module")
-def recording(euroc, tmp_path_factory) -> Path:
+def recording(capture, tmp_path_factory) -> Path:
     from vio.viz import make_rerun_sink
 
     rrd = tmp_path_factory.mktemp("viz") / "run.rrd"
     sink = make_rerun_sink(rrd=rrd)
     assert not rrd.exists()  # only renamed into place by close()
-    assert feed(sink, euroc, max_frames=N_FRAMES) > 5
+    assert feed(sink, capture, max_frames=N_FRAMES) > 5
     sink.close()
     return rrd
 
@@ -125,7 +128,7 @@ def chunk_summary(rrd: Path) -> dict[tuple[str, str], int]:
     return rows
 
 
-def test_rrd_holds_every_archetype(recording, euroc):
+def test_rrd_holds_every_archetype(recording, capture):
     from vio import viz_blueprint as bp
 
     rows = chunk_summary(recording)
@@ -141,8 +144,8 @@ def test_rrd_holds_every_archetype(recording, euroc):
     assert rows[("/" + bp.LANDMARKS, "Points3D")] == n_kf
     assert rows[("/" + bp.SOLVE_MS, "Scalars")] == n_kf
     assert rows[("/" + bp.REPROJ_PX, "Scalars")] == n_kf
-    assert rows[("/" + bp.PLOT_GYRO, "Scalars")] == len(euroc.imu)  # the whole stream, one send_columns
-    assert rows[("/" + bp.PLOT_VEL + "/" + bp.GT, "Scalars")] == len(euroc.ground_truth)
+    assert rows[("/" + bp.PLOT_GYRO, "Scalars")] == len(capture.imu)  # the whole stream, one send_columns
+    assert rows[("/" + bp.PLOT_VEL + "/" + bp.GT, "Scalars")] == len(capture.ground_truth)
     assert rows[("/" + bp.PLOT_VEL + "/" + bp.EST, "Scalars")] == n_kf
     assert ("/" + bp.WORLD, "ViewCoordinates") in rows
 
@@ -175,7 +178,7 @@ def _listening(pid: int) -> list[tuple[str, int]]:
     return [(c.laddr.ip, c.laddr.port) for c in conns if c.status == psutil.CONN_LISTEN]
 
 
-def test_serve_binds_only_loopback(euroc):
+def test_serve_binds_only_loopback(sim_capture):
     import urllib.request
 
     from vio.viz import make_rerun_sink
@@ -185,7 +188,7 @@ def test_serve_binds_only_loopback(euroc):
     try:
         assert viewer is not None and viewer.kind == "web"
         assert viewer.url.startswith(f"http://127.0.0.1:{viewer.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A")
-        feed(sink, euroc, max_frames=6)
+        feed(sink, read_asl(sim_capture("orbit", 4.0)), max_frames=6)
         sink.close()
         listening = _listening(viewer.pid)
         ports = {port for _, port in listening}
