@@ -13,12 +13,14 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import gtsam
 import numpy as np
 
 from backend import factors as fb
+from backend.anchoring import PositionAnchor
 from backend.initialisation import InitialGuess, moving_start, static_start
 from backend.keys import B, L, V, X
 from backend.landmarks import LandmarkBook
@@ -30,7 +32,6 @@ log = logging.getLogger(__name__)
 
 # Preintegrate(t0_ns, t1_ns, bias) -> object with `.pim` (PreintegratedCombinedMeasurements) and `.gap` (bool).
 Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
-KnownPosition = tuple[int, np.ndarray, float]  # (t_ns, p_world (3,) m, sigma m)
 
 
 def _get(values: gtsam.Values, key: int) -> Any:
@@ -56,7 +57,7 @@ class VioEstimator:
         cfg: BackendConfig,
         bias_sigma_acc: float = 0.1,
         bias_sigma_gyro: float = 0.01,
-        positions: list[KnownPosition] | None = None,
+        positions: list[tuple[int, np.ndarray, float]] | None = None,
     ) -> None:
         self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
         self.bias_sigma_acc, self.bias_sigma_gyro = bias_sigma_acc, bias_sigma_gyro
@@ -64,7 +65,8 @@ class VioEstimator:
         self.noise = fb.pixel_noise(cfg.pixel_sigma, cfg.huber_k)
         self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg)
         self.smoother = Smoother(cfg)
-        self.positions = sorted(positions or [], key=lambda p: p[0])
+        max_dt = 0.5 / max(camera.rate_hz, 1.0)
+        self.anchor = PositionAnchor(positions, max_dt) if positions else None
         self.t_ns: dict[int, int] = {}  # keyframe index -> time
         self.pending: list[int] = []  # keyframes waiting for initialisation
         self.pims: dict[int, Any] = {}  # k -> preintegration from the keyframe before k
@@ -115,14 +117,25 @@ class VioEstimator:
             self._set(key, _get(est, key))
 
     def _position_factors(self, k: int) -> list[gtsam.NonlinearFactor]:
-        """Known positions within half a keyframe interval of keyframe k (sigma inflated by the time offset)."""
-        out = []
-        t = self.t_ns[k]
-        for t_p, p, sigma in self.positions:
-            dt = abs(t_p - t) * 1e-9
-            if dt <= 0.5 / max(self.camera.rate_hz, 1.0):
-                out.append(fb.position_factor(k, p, float(np.hypot(sigma, dt * 1.0))))
+        """GPS-like factors of known positions: keyframe k's match, plus all earlier matches on first alignment."""
+        if self.anchor is None:
+            return []
+        matched = self.anchor.match(k, self.t_ns[k]) is not None
+        if self.anchor.try_align(self._known_positions_est()):
+            todo = [pair for pair in self.anchor.pairs if self.values.exists(X(pair[0]))]
+            log.info("known positions aligned (yaw + translation) after %d matches", len(todo))
+        elif self.anchor.known_T_est is not None and matched:
+            todo = self.anchor.pairs[-1:]
+        else:
+            return []
+        out = [fb.position_factor(kk, self.anchor.to_est(p), sigma) for kk, p, sigma in todo]
+        self.anchor.num_factors += len(out)
         return out
+
+    def _known_positions_est(self) -> dict[int, np.ndarray]:
+        return {
+            kk: self.values.atPose3(X(kk)).translation() for kk, _, _ in self.anchor.pairs if self.values.exists(X(kk))
+        }
 
     # ----------------------------------------------------------------- public
     def add_keyframe(self, t_ns: int, tracks: FeatureTracks) -> list[StateEstimate]:
@@ -175,13 +188,24 @@ class VioEstimator:
         return info
 
     def states(self) -> list[StateEstimate]:
-        """The current (smoothed) estimate of every initialised keyframe, in time order."""
-        return [self._state(k, 0.0) for k in sorted(self.t_ns) if self.values.exists(X(k))]
+        """The current (smoothed) estimate of every initialised keyframe, in time order (in the known positions'
+        frame when they were given and aligned)."""
+        out = [self._state(k, 0.0) for k in sorted(self.t_ns) if self.values.exists(X(k))]
+        T = self._output_T()
+        if T is None:
+            return out
+        return [replace(s, world_T_body=T @ s.world_T_body, v_world=T[:3, :3] @ s.v_world) for s in out]
+
+    def _output_T(self) -> np.ndarray | None:  # noqa: N802
+        return None if self.anchor is None else self.anchor.known_T_est
 
     def landmarks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(M,) track ids, (M, 3) world points (m), (M,) number of projection factors."""
         ids = [j for j in sorted(self.num_obs) if self.values.exists(L(j))]
         pts = np.array([self.values.atPoint3(L(j)) for j in ids]).reshape(-1, 3)
+        T = self._output_T()
+        if T is not None:
+            pts = pts @ T[:3, :3].T + T[:3, 3]
         return np.asarray(ids, np.int64), pts, np.array([self.num_obs[j] for j in ids], np.int64)
 
     # ----------------------------------------------------------------- initialisation
@@ -265,8 +289,8 @@ class VioEstimator:
         for a, b in zip(ks[:-1], ks[1:], strict=True):
             self._add(graph, fb.imu_factor(a, b, self.pims[b]))
         for k in ks:
-            for f in self._position_factors(k):
-                self._add(graph, f)
+            if self.anchor is not None:  # matched now, added once aligned (see backend.anchoring)
+                self.anchor.match(k, self.t_ns[k])
         poses = guess.world_T_body
         for j, tr in self.book.tracks.items():
             p = self.book.try_admit(j, poses)
