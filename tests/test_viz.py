@@ -27,6 +27,9 @@ from vio.records import StateEstimate  # noqa: E402
 RERUN = ROOT / ".venv" / "bin" / "rerun"
 KEYFRAME_EVERY = 3  # frames
 N_FRAMES = 40
+EST_WORLD_T_GT_WORLD = np.array(  # yaw 40 deg and an offset: the estimate's world is not the ground truth's
+    [[np.cos(0.7), -np.sin(0.7), 0, 1.0], [np.sin(0.7), np.cos(0.7), 0, -2.0], [0, 0, 1, 0.5], [0, 0, 0, 1]]
+)
 EXPECTED = ["EncodedImage", "Pinhole", "Transform3D", "Points2D", "Points3D", "LineStrips3D", "Scalars"]
 
 
@@ -37,8 +40,18 @@ def _gt_at(capture: Capture, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndar
     return gt.world_T_body(i), gt.v_world[i], gt.b_w[i], gt.b_a[i]
 
 
-def feed(sink, capture: Capture, max_frames: int | None = None, timings: list[float] | None = None) -> int:
-    """Drive `sink` with the capture's records the way the pipeline does; returns the number of keyframes."""
+def feed(
+    sink,
+    capture: Capture,
+    max_frames: int | None = None,
+    timings: list[float] | None = None,
+    est_world_T_gt_world: np.ndarray | None = None,
+) -> int:
+    """Drive `sink` with the capture's records the way the pipeline does; returns the number of keyframes.
+
+    Estimates are the ground truth moved into another world by `est_world_T_gt_world` (as an estimator's world
+    differs from the ground truth's by yaw and position); landmarks are the keyframe's rays at made-up depths."""
+    T_est_gt = np.eye(4) if est_world_T_gt_world is None else est_world_T_gt_world
     cam = capture.camera
     sink.on_start(cam, capture.imu, capture.ground_truth)
     prev, pts, ids, ages = None, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros(0, int)
@@ -67,6 +80,7 @@ def feed(sink, capture: Capture, max_frames: int | None = None, timings: list[fl
         spent = time.perf_counter() - t_sink
         if n % KEYFRAME_EVERY == 0:
             world_T_body, v, bw, ba = _gt_at(capture, frame.t_ns)
+            world_T_body, v = T_est_gt @ world_T_body, T_est_gt[:3, :3] @ v
             world_T_cam = world_T_body @ cam.body_T_cam
             rays = np.column_stack([cam.undistort_to_normalized(pts), np.ones(len(pts))])
             depth = 2.0 + (ids % 7) * 0.3  # metres, varied per track so the cloud has relief
@@ -77,7 +91,7 @@ def feed(sink, capture: Capture, max_frames: int | None = None, timings: list[fl
             est = StateEstimate(
                 k, frame.t_ns, world_T_body, v, bw, ba, lm_ids, np.array([landmarks[j] for j in lm_ids])
             )
-            stats = {"solve_ms": 5.0 + k % 4, "reproj_px_median": 0.4 + 0.01 * k, "num_landmarks": len(lm_ids)}
+            stats = {"solve_ms": 5.0 + k % 4, "num_landmarks": len(lm_ids)}  # the sink computes the reprojection
             t_sink = time.perf_counter()
             sink.on_estimate(est, stats)
             spent += time.perf_counter() - t_sink
@@ -103,7 +117,7 @@ def recording(capture, tmp_path_factory) -> Path:
     rrd = tmp_path_factory.mktemp("viz") / "run.rrd"
     sink = make_rerun_sink(rrd=rrd)
     assert not rrd.exists()  # only renamed into place by close()
-    assert feed(sink, capture, max_frames=N_FRAMES) > 5
+    assert feed(sink, capture, max_frames=N_FRAMES, est_world_T_gt_world=EST_WORLD_T_GT_WORLD) > 5
     sink.close()
     return rrd
 
@@ -148,6 +162,45 @@ def test_rrd_holds_every_archetype(recording, capture):
     assert rows[("/" + bp.PLOT_VEL + "/" + bp.GT, "Scalars")] == len(capture.ground_truth)
     assert rows[("/" + bp.PLOT_VEL + "/" + bp.EST, "Scalars")] == n_kf
     assert ("/" + bp.WORLD, "ViewCoordinates") in rows
+
+
+def read_column(rrd: Path, entity: str, column: str) -> list:
+    """All rows of one component column of one entity in the recording, ordered by sensor time (static first)."""
+    from rerun.chunk import RrdReader
+
+    from vio import viz_blueprint as bp
+
+    rows = []
+    for chunk in RrdReader(rrd).stream():
+        if chunk.entity_path == "/" + entity:
+            rb = chunk.to_record_batch()
+            if column in rb.schema.names:
+                t = rb.column(bp.TIMELINE).cast("int64").to_pylist() if bp.TIMELINE in rb.schema.names else None
+                vals = rb.column(column).to_pylist()
+                rows += list(zip(t or [-1] * len(vals), vals, strict=True))
+    return [v for _, v in sorted(rows, key=lambda r: r[0])]
+
+
+def test_ground_truth_is_drawn_in_the_estimates_world(recording, capture):
+    from vio import viz_blueprint as bp
+
+    (gt_strip,) = read_column(recording, bp.TRAJ_GT, "LineStrips3D:strips")
+    T = EST_WORLD_T_GT_WORLD
+    expected = capture.ground_truth.p_world @ T[:3, :3].T + T[:3, 3]
+    np.testing.assert_allclose(np.array(gt_strip[0]), expected, atol=1e-4)
+    est_strips = read_column(recording, bp.TRAJ_EST, "LineStrips3D:strips")
+    first_est = np.array(est_strips[-1][0][0])
+    world_T_body, *_ = _gt_at(capture, int(capture.frame_t_ns[0]))
+    np.testing.assert_allclose(first_est, (T @ world_T_body)[:3, 3], atol=1e-4)
+
+
+def test_reprojection_error_is_computed_from_the_landmarks(recording):
+    from vio import viz_blueprint as bp
+
+    values = [v[0] for v in read_column(recording, bp.REPROJ_PX, "Scalars:scalars")]
+    assert len(values) == -(-N_FRAMES // KEYFRAME_EVERY)
+    assert values[0] < 1e-3  # keyframe 0's landmarks are its own rays: they reproject exactly
+    assert np.isfinite(values).all()
 
 
 def test_default_blueprint_is_in_the_recording(recording):

@@ -9,6 +9,7 @@ biases and solver statistics. Frames: world z-up; camera OpenCV; world_T_cam = w
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -19,12 +20,15 @@ import rerun as rr
 from vio import viz_blueprint as bp
 from vio.errors import VioError
 from vio.records import CameraCalib, Frame, GroundTruth, ImuSeries, StateEstimate
+from vio.viz_geometry import anchor_yaw_translation, reprojection_errors_px
 from vio.viz_server import ViewerProcess, start_viewer_process
 
 log = logging.getLogger(__name__)
 
 IMAGE_MAX_WIDTH_PX = 400  # images are downscaled by an integer factor to at most this width, then JPEG-encoded
 JPEG_QUALITY = 75
+TRACKS_KEPT = 400  # recent frames whose tracks are kept to compute a keyframe's reprojection error
+GT_ANCHOR_MAX_GAP_NS = 100_000_000
 AGE_SATURATION_FRAMES = 30  # track age at which the feature colour stops changing
 FEATURE_RADIUS = rr.Radius.ui_points(3.0)  # screen size, whatever the zoom
 LANDMARK_RADIUS = rr.Radius.ui_points(2.0)
@@ -61,7 +65,10 @@ class RerunSink:
         self._rrd_tmp, self._rrd = rrd_tmp, rrd
         self._scale = 1.0  # image downscale factor
         self._body_T_cam = np.eye(4)
-        self._traj: list[np.ndarray] = []
+        self._camera: CameraCalib | None = None
+        self._traj: dict[int, np.ndarray] = {}  # keyframe index -> body position (latest estimate wins)
+        self._gt: GroundTruth | None = None  # logged at the first estimate, anchored in the estimate's world
+        self._tracks: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # t_ns -> (ids, uv) recent
         self._closed = False
 
     def _set_time(self, t_ns: int) -> None:
@@ -72,6 +79,7 @@ class RerunSink:
         rec = self.rec
         rec.log(bp.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         if camera is not None:
+            self._camera = camera
             self._body_T_cam = np.asarray(camera.body_T_cam, float)
             self._scale = 1.0 / int(np.ceil(camera.width / IMAGE_MAX_WIDTH_PX))
             s = self._scale
@@ -87,12 +95,22 @@ class RerunSink:
             rec.send_columns(bp.PLOT_GYRO, times, rr.Scalars.columns(scalars=imu.gyro).partition([3] * len(imu)))
             rec.send_columns(bp.PLOT_ACC, times, rr.Scalars.columns(scalars=imu.acc).partition([3] * len(imu)))
         if ground_truth is not None and len(ground_truth):
-            gt = ground_truth
-            rec.log(bp.TRAJ_GT, rr.LineStrips3D([gt.p_world], colors=[GT_COLOR], radii=LINE_RADIUS), static=True)
-            times = [_time_column(gt.t_ns)]
-            lens = [3] * len(gt)
-            for path, values in ((bp.PLOT_VEL, gt.v_world), (bp.PLOT_BIAS_GYRO, gt.b_w), (bp.PLOT_BIAS_ACC, gt.b_a)):
-                rec.send_columns(f"{path}/{bp.GT}", times, rr.Scalars.columns(scalars=values).partition(lens))
+            self._gt = ground_truth
+
+    def _log_ground_truth(self, est_world_T_gt_world: np.ndarray | None) -> None:
+        """The ground-truth trajectory (static) and velocity/bias series, in the estimate's world when anchored."""
+        gt, self._gt = self._gt, None
+        T = np.eye(4) if est_world_T_gt_world is None else est_world_T_gt_world
+        p_world = gt.p_world @ T[:3, :3].T + T[:3, 3]
+        self.rec.log(bp.TRAJ_GT, rr.LineStrips3D([p_world], colors=[GT_COLOR], radii=LINE_RADIUS), static=True)
+        times = [_time_column(gt.t_ns)]
+        lens = [3] * len(gt)
+        for path, values in (
+            (bp.PLOT_VEL, gt.v_world @ T[:3, :3].T),
+            (bp.PLOT_BIAS_GYRO, gt.b_w),
+            (bp.PLOT_BIAS_ACC, gt.b_a),
+        ):
+            self.rec.send_columns(f"{path}/{bp.GT}", times, rr.Scalars.columns(scalars=values).partition(lens))
 
     def _log_series_styles(self, with_gt: bool) -> None:
         xyz = ["x", "y", "z"]
@@ -122,6 +140,9 @@ class RerunSink:
         uv_rr = (np.asarray(uv, float).reshape(-1, 2) + 0.5) * self._scale
         colors = _colormap(ages, 0.0, AGE_SATURATION_FRAMES, cv2.COLORMAP_VIRIDIS)
         self.rec.log(bp.FEATURES, rr.Points2D(uv_rr, colors=colors, radii=FEATURE_RADIUS))
+        self._tracks[int(frame.t_ns)] = (np.asarray(ids), np.asarray(uv, float).reshape(-1, 2))
+        while len(self._tracks) > TRACKS_KEPT:
+            self._tracks.popitem(last=False)
 
     def on_estimate(self, estimate: StateEstimate, stats: dict[str, Any]) -> None:
         """Camera pose, trajectory so far, landmarks, velocity, biases and solver scalars at the keyframe time."""
@@ -129,31 +150,53 @@ class RerunSink:
         self._set_time(estimate.t_ns)
         world_T_body = np.asarray(estimate.world_T_body, float)
         world_T_cam = world_T_body @ self._body_T_cam
+        if self._gt is not None:
+            self._log_ground_truth(self._anchor(estimate.t_ns, world_T_body))
         rec.log(bp.CAMERA, rr.Transform3D(translation=world_T_cam[:3, 3], mat3x3=world_T_cam[:3, :3]))
-        self._traj.append(world_T_body[:3, 3].copy())
-        rec.log(bp.TRAJ_EST, rr.LineStrips3D([np.array(self._traj)], colors=[EST_COLOR], radii=LINE_RADIUS))
+        self._traj[estimate.k] = world_T_body[:3, 3].copy()
+        strip = np.array([self._traj[k] for k in sorted(self._traj)])
+        rec.log(bp.TRAJ_EST, rr.LineStrips3D([strip], colors=[EST_COLOR], radii=LINE_RADIUS))
         pts = np.asarray(estimate.landmarks_world, float).reshape(-1, 3)
-        if pts.shape[0]:
+        if pts.shape[0]:  # an estimate without landmarks leaves the last cloud on screen
             lo, hi = np.percentile(pts[:, 2], [2, 98])
             colors = _colormap(pts[:, 2], lo, hi, cv2.COLORMAP_TURBO)
             rec.log(bp.LANDMARKS, rr.Points3D(pts, colors=colors, radii=LANDMARK_RADIUS))
-        else:
-            rec.log(bp.LANDMARKS, rr.Clear(recursive=False))
         rec.log(f"{bp.PLOT_VEL}/{bp.EST}", rr.Scalars(np.asarray(estimate.v_world, float)))
         rec.log(f"{bp.PLOT_BIAS_GYRO}/{bp.EST}", rr.Scalars(np.asarray(estimate.bias_gyro, float)))
         rec.log(f"{bp.PLOT_BIAS_ACC}/{bp.EST}", rr.Scalars(np.asarray(estimate.bias_acc, float)))
         solve_ms = float(stats.get("solve_ms", estimate.solve_ms))
         rec.log(bp.SOLVE_MS, rr.Scalars(solve_ms))
         reproj = stats.get("reproj_px_median")
+        if reproj is None:
+            reproj = self._reprojection_median(estimate, world_T_cam)
         if reproj is not None and np.isfinite(reproj):
             rec.log(bp.REPROJ_PX, rr.Scalars(float(reproj)))
         rec.log(bp.NUM_LANDMARKS, rr.Scalars(float(stats.get("num_landmarks", pts.shape[0]))))
+
+    def _anchor(self, t_ns: int, est_world_T_body: np.ndarray) -> np.ndarray | None:
+        """est_world_T_gt_world from the ground-truth sample nearest t_ns; None (drawn as is) if none is close."""
+        gt = self._gt
+        i = int(np.argmin(np.abs(gt.t_ns - np.int64(t_ns))))  # once per run
+        if abs(int(gt.t_ns[i]) - t_ns) > GT_ANCHOR_MAX_GAP_NS:
+            log.warning("ground truth has no sample within 0.1 s of the first keyframe; drawn in its own world frame")
+            return None
+        return anchor_yaw_translation(est_world_T_body, gt.world_T_body(i))
+
+    def _reprojection_median(self, estimate: StateEstimate, world_T_cam: np.ndarray) -> float | None:
+        """Median reprojection error (px) of the keyframe's tracked features on the estimate's landmarks, if any."""
+        seen = self._tracks.get(int(estimate.t_ns))
+        if seen is None or self._camera is None or len(estimate.landmark_ids) == 0:
+            return None
+        err = reprojection_errors_px(self._camera, world_T_cam, estimate.landmark_ids, estimate.landmarks_world, *seen)
+        return float(np.median(err)) if err.size else None
 
     def close(self) -> None:
         """Flush; finish the .rrd (renamed into place only now, so it is never seen half-written)."""
         if self._closed:
             return
         self._closed = True
+        if self._gt is not None:  # no estimate ever came: show the ground truth in its own frame
+            self._log_ground_truth(None)
         self.rec.flush()
         self.rec.disconnect()  # drops the sinks: the file sink writes its footer and closes
         if self._rrd_tmp is not None and self._rrd is not None:
