@@ -123,3 +123,24 @@ def test_lossy_phone_codec_keeps_times_and_imu_exact(ref, tmp_path):
     np.testing.assert_array_equal(cap.imu.t_ns, ref.imu.t_ns)
     errs = [np.abs(cap.load_image(i).astype(float) - ref.load_image(i)).mean() for i in range(0, ref.num_frames, 9)]
     assert max(errs) < 4.0  # mean absolute error, grey levels (measured about 1.7 on the orbit texture)
+
+
+def test_tumvi_layout_needs_a_pinhole_calibration(ref, tmp_path):
+    """TUM-VI: ASL layout without cam0/sensor.yaml, mocap0/, and an equidistant dso/camchain.yaml."""
+    import shutil
+
+    from tests.writers import calib_yaml_text
+    from vio.errors import CalibrationError
+
+    root = tmp_path / "tumvi"
+    shutil.copytree(ref.root, root)
+    (root / "mav0" / "cam0" / "sensor.yaml").unlink()
+    (root / "mav0" / "mocap0").mkdir()
+    (root / "dso").mkdir()
+    fisheye = calib_yaml_text(ref.camera, None).replace("distortion_model: radtan", "distortion_model: equidistant")
+    (root / "dso" / "camchain.yaml").write_text(fisheye)
+    with pytest.raises(CalibrationError, match="no camera calibration"):
+        open_capture(root)
+    (tmp_path / "pinhole.yaml").write_text(calib_yaml_text(ref.camera, None))
+    cap = open_capture(root, calib=tmp_path / "pinhole.yaml")
+    assert cap.format == "tumvi" and cap.camera.fx == ref.camera.fx

@@ -40,7 +40,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
-        src = simulate("orbit", tmp_path / "asl", seed=0, duration_s=args.duration)
+        src = simulate("orbit", tmp_path / "asl", seed=0, duration_s=args.duration, workers=1)
         ref = open_capture(src)
         duration = (max(ref.frame_t_ns[-1], ref.imu.t_ns[-1]) - min(ref.frame_t_ns[0], ref.imu.t_ns[0])) * 1e-9
         (tmp_path / "r1").mkdir()
