@@ -17,7 +17,7 @@ from vio.sim.scene import Box, Scene
 from vio.sim.trajectory import PoseFn, Sinusoids, look_at, smoothstep7
 
 CUBE_SIZE_M = 0.0762  # 3 inches
-_CUBE_SHADE = (0.62, 0.80, 0.70, 0.52, 0.45, 0.95)  # -x, +x, -y, +y, bottom, top
+_CUBE_SHADE = (0.55, 0.85, 0.70, 0.40, 0.45, 1.0)  # -x, +x, -y, +y, bottom, top: light from +x and above
 _WALL_SHADE = (0.85, 0.80, 0.90, 0.75, 0.70, 0.95)  # room walls, floor (face 4), ceiling (face 5)
 _SOLID_SHADE = (0.68, 0.76, 0.72, 0.64, 0.50, 0.92)
 

@@ -22,10 +22,11 @@ class Style:
     size_max_m: float  # largest feature, m
     coverage: float  # expected summed feature area / face area
     margin_m: float = 0.0  # plain border band (a printed label's margin), m
+    margin_tone: float = 0.85  # its brightness (before the face's shading)
 
 
 STYLES = {
-    "object": Style(0.003, 0.022, 2.5, margin_m=0.003),
+    "object": Style(0.003, 0.022, 2.5, margin_m=0.005),
     "table": Style(0.008, 0.15, 2.5),
     "wall": Style(0.03, 0.5, 2.0),
     "furniture": Style(0.02, 0.3, 2.0),
@@ -79,7 +80,7 @@ def face_texture(box: Box, face: int, rng: np.random.Generator) -> np.ndarray:
         m = int(round(style.margin_m / box.texel_m))
         border = np.ones((h, w), bool)
         border[m : h - m, m : w - m] = False
-        img[border] = tone
+        img[border] = style.margin_tone
     img = cv2.GaussianBlur(img, (0, 0), 1.0)
     return np.clip(img, 0.0, 1.0)
 

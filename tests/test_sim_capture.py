@@ -1,0 +1,138 @@
+"""Simulated captures: determinism, ASL round trip, the trajectory-file scenario, the command line and its errors."""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import ROOT
+from vio.capture import AslWriter, read_asl
+from vio.errors import CaptureError, SimulationError
+from vio.sim.api import load_scenario, simulate
+from vio.sim.render import Renderer, camera_poses
+from vio.sim.stl import read_stl
+from vio.trajio import Trajectory, write_tum
+
+VIO = [sys.executable, "-m", "vio.cli"]
+
+
+def _digests(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_same_seed_gives_identical_files_and_another_seed_does_not(tmp_path):
+    a = simulate("figure8", tmp_path / "a", seed=11, duration_s=0.6, workers=1)
+    b = simulate("figure8", tmp_path / "b", seed=11, duration_s=0.6, workers=2)  # worker count does not matter
+    c = simulate("figure8", tmp_path / "c", seed=12, duration_s=0.6, workers=1)
+    da, db, dc = _digests(a), _digests(b), _digests(c)
+    assert len(da) == 5 + 12 + 3  # csv/yaml files, 12 frames, scene (stl + yaml) and the ground-truth yaml
+    assert da == db
+    differs = {k for k in da if da[k] != dc.get(k)}
+    for stream in ("mav0/imu0/data.csv", "mav0/state_groundtruth_estimate0/data.csv", "mav0/cam0/data/"):
+        assert any(k.startswith(stream) for k in differs), stream
+    assert da["scene/object.stl"] == dc["scene/object.stl"]  # the same cube
+
+
+def test_capture_round_trip(tmp_path, sim_capture):
+    root = sim_capture("orbit", duration_s=1.0, imu="phone", seed=3, images=True)
+    cap = read_asl(root)
+    sc = load_scenario("orbit", seed=3, duration_s=1.0)
+    # What was written is what the simulator computed.
+    assert np.array_equal(cap.frame_t_ns, sc.frame_times_ns()) and cap.num_frames == 20
+    assert cap.imu is not None and len(cap.imu) == 201 and cap.imu.t_ns[0] == sc.t0_ns
+    truth = sc.trajectory.sample((cap.ground_truth.t_ns - sc.t0_ns) * 1e-9)
+    assert np.abs(cap.ground_truth.p_world - truth.p_world).max() < 1e-9
+    assert np.allclose(cap.camera.body_T_cam, sc.camera.body_T_cam, atol=1e-12) and cap.camera.fx == sc.camera.fx
+    assert cap.imu_calib == sc.imu_calib
+    img = Renderer(sc.scene, sc.camera).render(camera_poses(sc, cap.frame_t_ns[:1])[0], None)
+    diff = np.abs(cap.load_image(0).astype(int) - img)
+    assert diff.mean() < 2.0 and diff.max() <= 12  # the same view up to the pixel noise (sigma 1.5)
+    tris = read_stl(cap.scene_dir / "object.stl")
+    assert tris.shape == (12, 3, 3) and np.allclose(
+        tris.reshape(-1, 3).max(axis=0) - tris.reshape(-1, 3).min(0), 0.0762
+    )
+    # Written again with AslWriter and read back: equal.
+    with AslWriter(tmp_path / "copy") as w:
+        w.write_camera(cap.camera)
+        w.write_imu(cap.imu_calib, cap.imu)
+        w.write_groundtruth(cap.ground_truth)
+        for i, t in enumerate(cap.frame_t_ns):
+            w.add_frame(int(t), cap.load_image(i))
+    back = read_asl(tmp_path / "copy")
+    assert np.array_equal(back.imu.t_ns, cap.imu.t_ns) and np.array_equal(back.imu.acc, cap.imu.acc)
+    assert np.array_equal(back.imu.gyro, cap.imu.gyro)
+    for field in ("t_ns", "p_world", "v_world", "b_w", "b_a"):
+        assert np.array_equal(getattr(back.ground_truth, field), getattr(cap.ground_truth, field)), field
+    # The reader re-normalises quaternions, which may move the last of the 12 written digits.
+    assert np.abs(back.ground_truth.q_wxyz - cap.ground_truth.q_wxyz).max() < 1e-12
+    assert back.camera.fx == cap.camera.fx and np.array_equal(back.camera.dist, cap.camera.dist)
+    assert all(np.array_equal(back.load_image(i), cap.load_image(i)) for i in range(cap.num_frames))
+
+
+def test_trajectory_file_drives_the_simulator(tmp_path, sim_capture):
+    """A TUM file made from an orbit's ground truth: the spline reproduces it and the capture is complete."""
+    gt = read_asl(sim_capture("orbit", duration_s=4.0, imu="ideal", images=False)).ground_truth
+    keep = np.arange(0, len(gt), 4)  # 50 Hz, like a motion-capture export
+    write_tum(tmp_path / "traj.tum", Trajectory(gt.t_ns[keep], gt.p_world[keep], gt.q_wxyz[keep]))
+    sc = load_scenario(tmp_path / "traj.tum")
+    assert sc.t0_ns == int(gt.t_ns[0]) + 50_000_000 and sc.duration_s == pytest.approx(3.9)
+    t = np.arange(0.0, sc.duration_s, 0.01)
+    s = sc.trajectory.sample(t)
+    ref_t = (gt.t_ns - sc.t0_ns) * 1e-9
+    for k in range(3):
+        assert np.abs(np.interp(t, ref_t, gt.p_world[:, k]) - s.p_world[:, k]).max() < 2e-3
+    assert sc.scene.room.contains(s.p_world).all()
+    out = simulate(tmp_path / "traj.tum", tmp_path / "cap", duration_s=0.5, imu_grade="tactical")
+    cap = read_asl(out)
+    assert cap.num_frames == 10 and cap.load_image(9).std() > 10.0  # textured walls in view
+
+
+def test_cli_simulate_smoke(tmp_path):
+    r = subprocess.run(
+        [*VIO, "simulate", "room", "--out", str(tmp_path / "r"), "--duration", "0.3", "--seed", "2", "--imu", "ideal"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    cap = read_asl(tmp_path / "r")
+    assert cap.num_frames == 6 and len(cap.imu) == 61 and cap.load_image(5).shape == (480, 640)
+    assert "imu_grade: ideal" in (tmp_path / "r" / "scene" / "scene.yaml").read_text()
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (None, "unknown scenario 'nosuch'"),
+        ("0.0 1 2 3 0 0 0 1\n0.1 1 2 3 0 0 1\n", "traj.tum:2: TUM row needs 8 fields"),
+        ("0.0 1 2 3 0 0 0 1\n0.1 1 2 3 0 0 0 1\n", "needs at least 10 poses"),
+    ],
+)
+def test_bad_scenario_is_one_clear_line(tmp_path, content, match):
+    scenario = "nosuch"
+    if content is not None:
+        scenario = str(tmp_path / "traj.tum")
+        Path(scenario).write_text(content)
+    with pytest.raises((SimulationError, CaptureError), match=match):
+        load_scenario(scenario)
+    r = subprocess.run(
+        [*VIO, "simulate", scenario, "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0], r.stderr
+    assert not (tmp_path / "o").exists()
