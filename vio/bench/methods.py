@@ -27,7 +27,7 @@ class MethodOutput:
     trajectory: Path  # TUM file of the body pose in the method's world frame
     wall_s: float  # wall time of the estimation, s
     latencies_ms: np.ndarray | None = None  # (K,) per-keyframe update time, ms (online methods only)
-    align: str = "se3"  # the alignment under which the method's headline ATE is meaningful
+    align: str = "se3"  # the method's frame: se3 (metric, free position+yaw), sim3 (no scale), none (GT's frame)
     info: dict | None = None  # method-specific facts (initialisation, ZUPT count, warnings)
 
 
@@ -52,7 +52,7 @@ def run_imu_only(capture_dir: Path, out: Path) -> list[MethodOutput]:
     path = out / "trajectory.tum"
     write_tum(path, res.trajectory)
     info = {"init": res.init, "zupt_count": res.zupt_count, "static_s": res.static_s}
-    return [MethodOutput("imu_only", path, wall, None, "se3", info)]
+    return [MethodOutput("imu_only", path, wall, None, "none", info)]
 
 
 def _latencies(run: dict) -> np.ndarray | None:

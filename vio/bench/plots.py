@@ -1,8 +1,8 @@
 """Benchmark figures (matplotlib, Agg backend), written atomically as PNG under `out/plots/`.
 
 - `trajectories.png`: each capture from above (world x-y, metres), ground truth against every method's aligned
-  estimate (4-DoF alignment; Sim3 for vision_only). The view is the ground truth's extent: a method that drifts out
-  of it says so in the legend with its final error.
+  estimate (4-DoF alignment; Sim3 for vision_only; imu_only is not aligned: it starts from the true state).
+  The view is the ground truth's extent: a method that drifts out of it says so in the legend with its final error.
 - `error_over_time.png`: position error after the same alignment against time, log scale, one panel per capture.
 - `error_distribution.png`: box plots of ATE per method over all captures and seeds, one panel per IMU grade.
 """
@@ -88,7 +88,7 @@ def plot_trajectories(cases: list[Any], out: Path, path: Path) -> None:
         ax.set_ylabel("y (m)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper right")
-    fig.suptitle("Trajectories from above (aligned 4-DoF; vision_only Sim3)")
+    fig.suptitle("Trajectories from above (aligned 4-DoF; vision_only Sim3; imu_only unaligned from the true start)")
     _save(fig, path)
 
 
@@ -102,7 +102,7 @@ def plot_error_over_time(cases: list[Any], out: Path, path: Path) -> None:
         ax.set_ylabel("position error (m)")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    fig.suptitle("Position error over time (4-DoF alignment; vision_only Sim3)")
+    fig.suptitle("Position error over time (4-DoF alignment; vision_only Sim3; imu_only unaligned from the true start)")
     _save(fig, path)
 
 

@@ -2,7 +2,8 @@
 
 Row fields (null where not applicable): `ate_se3_m`, `ate_posyaw_m` (RMSE after SE3 / 4-DoF position+yaw
 alignment, m; null for `vision_only`, whose scale is unknown), `ate_sim3_m` and `scale` (Sim3 alignment), `drift_pct`
-(final position error after the 4-DoF alignment, Sim3 for `vision_only`, as % of the ground-truth path length),
+(final position error as % of the ground-truth path length, after the 4-DoF alignment; Sim3 for `vision_only`;
+none for `imu_only`, which starts from the ground truth's initial state),
 `rtf` (estimation wall time / capture duration), `latency_ms_p50/p95/max` (per-keyframe update time of online
 methods), `peak_rss_mb` (peak resident memory of the run's own process, MiB). A failed run has an `error` field.
 """
@@ -133,7 +134,8 @@ def markdown(rows: list[dict[str, Any]], title: str = "", wall_s: float | None =
         lines += [f"{len(rows)} runs in {wall_s / 60:.1f} min with {jobs} parallel jobs.", ""]
     lines += [
         "Medians over seeds. ATE is the position RMSE in mm (m where marked) after the named alignment; drift is the "
-        "final position error after the 4-DoF (vision_only: Sim3) alignment as % of path length; RTF is wall time "
+        "final position error after the 4-DoF alignment (vision_only: Sim3; imu_only: none, it starts from the true "
+        "initial state) as % of path length; RTF is wall time "
         "/ capture duration; latency is the per-keyframe update time.",
         "",
         "| scenario | IMU | method | runs | " + " | ".join(c for c, _ in cols) + " |",
@@ -170,7 +172,7 @@ def collect_rpe(out: Path) -> list[dict[str, Any]]:
         except (OSError, ValueError):
             continue
         row, metrics = data.get("row", {}), data.get("metrics", {})
-        m = metrics.get("posyaw") or metrics.get("sim3") or {}
+        m = metrics.get("posyaw") or metrics.get("sim3") or {}  # RPE does not depend on a rigid alignment
         for seg in (m.get("rpe") or {}).values():
             found.append(
                 {

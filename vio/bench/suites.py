@@ -26,12 +26,13 @@ class Case:
     seed: int
     imu: str  # phone | tactical | ideal
     duration_s: float  # capture length, s
+    images: bool = True  # render the camera (False: IMU and ground truth only, for IMU-only suites)
 
     @property
     def key(self) -> str:
         """File-system name of the cached capture (scenario files are named by their stem)."""
         name = Path(self.scenario).stem if ("/" in self.scenario or "." in self.scenario) else self.scenario
-        return f"{name}_{self.imu}_s{self.seed}_{self.duration_s:g}s"
+        return f"{name}_{self.imu}_s{self.seed}_{self.duration_s:g}s" + ("" if self.images else "_noimg")
 
     @property
     def label(self) -> str:
@@ -63,12 +64,15 @@ VISION_ONLY = Method("vision_only", "vision_only")
 FIXED_LAG = Method("vio_lag3s", "vio", ("backend.smoother=fixed_lag", "backend.lag_s=3.0"))
 
 
-def _grid(scenarios: list[str], imus: list[str], seeds: list[int], duration_s: float) -> tuple[Case, ...]:
-    return tuple(Case(s, seed, imu, duration_s) for s, imu, seed in itertools.product(scenarios, imus, seeds))
+def _grid(
+    scenarios: list[str], imus: list[str], seeds: list[int], duration_s: float, images: bool = True
+) -> tuple[Case, ...]:
+    return tuple(Case(s, seed, imu, duration_s, images) for s, imu, seed in itertools.product(scenarios, imus, seeds))
 
 
 def get_suite(name: str) -> Suite:
-    """The named suite: `tiny` (tests), `quick` (under 15 min on 2 cores), `full` (the Monte-Carlo run)."""
+    """The named suite: `tiny` (tests), `quick` (under 15 min on 2 cores), `full` (the Monte-Carlo run), and
+    `drift60` (the IMU-only baseline alone on 60 s captures without images: the thesis's failure, in a minute)."""
     if name == "tiny":
         return Suite("tiny", (Case("orbit", 0, "phone", 4.0),), (IMU_ONLY, VIO), "test-only", plots=True)
     if name == "quick":
@@ -80,4 +84,7 @@ def get_suite(name: str) -> Suite:
         if EUROC_GT_FILE.exists():
             cases += _grid([str(EUROC_GT_FILE)], ["phone"], [0, 1, 2], 60.0)
         return Suite("full", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY, FIXED_LAG), "30-33 captures of 60 s")
-    raise ConfigError(f"unknown benchmark suite {name!r}; known: tiny, quick, full")
+    if name == "drift60":
+        cases = _grid(["orbit", "figure8", "room"], ["phone", "tactical", "ideal"], [0, 1, 2], 60.0, images=False)
+        return Suite("drift60", cases, (IMU_ONLY,), "27 IMU-only captures of 60 s")
+    raise ConfigError(f"unknown benchmark suite {name!r}; known: tiny, quick, full, drift60")
