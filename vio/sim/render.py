@@ -216,6 +216,15 @@ class Renderer:
             out.append((top + fy * (bot - top)).astype(np.float32))
         return out[0], out[1]
 
+    def surface_points(self, world_T_cam: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) seen at distorted pixels uv (N, 2) from world_T_cam, and their surface ids (N,)."""
+        xy = self.camera.undistort_to_normalized(np.asarray(uv, np.float64))
+        d = [world_T_cam[k, 0] * xy[:, 0] + world_T_cam[k, 1] * xy[:, 1] + world_T_cam[k, 2] for k in range(3)]
+        d = [np.where(c == 0, 1e-12, c) for c in d]
+        o = world_T_cam[:3, 3]
+        t, sid = self.trace(o, d)
+        return o + t[:, None] * np.column_stack(d), sid
+
     # -- frames -----------------------------------------------------------------------------------------------
     def render(self, world_T_cam: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
         """(H, W) uint8 image seen from world_T_cam (4x4); noise from rng (None: noise-free)."""
