@@ -136,3 +136,21 @@ def test_bad_scenario_is_one_clear_line(tmp_path, content, match):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and match in lines[0], r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_scenario_definitions_match_the_builtins(tmp_path):
+    for name in ("orbit", "figure8", "room"):
+        a = load_scenario(name, seed=3)
+        b = load_scenario(ROOT / "data" / "synthetic" / f"{name}.yaml", seed=3)
+        t = np.linspace(0.0, a.duration_s, 200)
+        assert a.duration_s == b.duration_s and np.array_equal(a.trajectory.pose(t)[0], b.trajectory.pose(t)[0])
+    quick = load_scenario(ROOT / "data" / "synthetic" / "orbit_quick.yaml")
+    s = quick.trajectory.sample(np.arange(0.0, quick.duration_s, 0.05))
+    top = quick.scene.object_corners_world()[:, 2].max()
+    rel = s.p_world - quick.scene.object_corners_world().mean(axis=0)
+    elevation = np.degrees(np.arctan2(rel[:, 2], np.linalg.norm(rel[:, :2], axis=1)))
+    assert quick.duration_s == 20.0 and elevation.max() > 55.0 and np.abs(elevation[:10]).max() < 8.0 and top > 0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("scenario: orbit\nmotion:\n  ring_seconds: 3\n")
+    with pytest.raises(SimulationError, match="bad.yaml: unknown motion key"):
+        load_scenario(bad)

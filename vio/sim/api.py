@@ -17,6 +17,7 @@ from vio.capture import AslWriter
 from vio.errors import SimulationError
 from vio.records import CameraCalib, ImuCalib
 from vio.sim import rig, scenarios
+from vio.sim.definitions import read_definition
 from vio.sim.imu import grade_by_name, imu_calib, simulate_imu
 from vio.sim.scene import Scene
 from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
@@ -58,30 +59,39 @@ def _streams(seed: int) -> list[np.random.SeedSequence]:
 def load_scenario(
     scenario: str | os.PathLike[str], seed: int = 0, duration_s: float | None = None, imu_grade_name: str = "phone"
 ) -> Scenario:
-    """Build a scenario by name (`orbit`, `figure8`, `room`) or from a trajectory file (EuRoC CSV or TUM)."""
+    """Build a scenario by name (`orbit`, `figure8`, `room`), from a scenario YAML (`data/synthetic/*.yaml`), or
+    from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses."""
     ss_traj, _, _, ss_scene = _streams(seed)
     rng = np.random.default_rng(ss_traj)
     texture_seed = int(ss_scene.generate_state(1)[0])
     camera = rig.default_camera()
     name = str(scenario)
     t0_ns = rig.T0_NS
-    if name in BUILTIN:
-        span = None
-        if name == "room":
+    span = None
+    definition = None
+    if name not in BUILTIN and name.lower().endswith((".yaml", ".yml")) and Path(name).is_file():
+        definition = read_definition(Path(name))
+    if name in BUILTIN or definition is not None:
+        base = name if definition is None else definition.base
+        motion = {} if definition is None else definition.motion
+        if base == "room":
             scene = scenarios.room_scene(texture_seed)
-            cam_fn = scenarios.room_camera(rng)
+            cam_fn = scenarios.room_camera(rng, **motion)
         else:
             scene = scenarios.tabletop_scene(texture_seed)
             centre = scene.object_corners_world().mean(axis=0)
-            make = scenarios.orbit_camera if name == "orbit" else scenarios.figure8_camera
-            cam_fn = make(rng, centre)
-        default_s = DEFAULT_DURATION_S[name]
+            make = scenarios.orbit_camera if base == "orbit" else scenarios.figure8_camera
+            cam_fn = make(rng, centre, **motion)
+        default_s = DEFAULT_DURATION_S[base]
+        if definition is not None and definition.duration_s is not None:
+            default_s = definition.duration_s
         traj_fn = camera_driven(cam_fn, camera.body_T_cam)
     else:
         path = Path(name)
         if not path.is_file():
             raise SimulationError(
-                f"unknown scenario '{name}': choose orbit, figure8, room, or a trajectory file (EuRoC CSV or TUM)"
+                f"unknown scenario '{name}': choose orbit, figure8, room, a scenario YAML, "
+                "or a trajectory file (EuRoC CSV or TUM)"
             )
         traj0, t_first_ns, scene = _from_file(path, texture_seed)
         span = traj0.duration_s

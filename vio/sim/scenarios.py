@@ -75,14 +75,26 @@ def _hand(rng: np.random.Generator) -> tuple[Sinusoids, Sinusoids, Sinusoids]:
     return pos, aim, roll
 
 
-def orbit_camera(rng: np.random.Generator, cube_centre: np.ndarray, ring_s: float = 15.0) -> PoseFn:
-    """Camera pose function of the orbit: rings 0-20-40-60 deg (then back down), radius 0.40-0.64 m + wobble."""
-    pattern_deg = np.array([0.0, 20.0, 40.0, 60.0, 40.0, 20.0])
-    transition_s = 4.0
+def orbit_camera(
+    rng: np.random.Generator,
+    cube_centre: np.ndarray,
+    ring_s: float = 15.0,
+    elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0),
+    radius_min_m: float = 0.38,
+    radius_max_m: float = 0.66,
+) -> PoseFn:
+    """Camera pose function of the orbit: one loop per ring, rings up then back down, radius in [min, max].
+
+    The radius wanders smoothly over [min + 2 cm, max - 2 cm]; the hand wobble adds up to ~2 cm.
+    """
+    pattern_deg = np.array([*elevations_deg, *elevations_deg[-2:0:-1]], dtype=float)
+    transition_s = min(4.0, 0.4 * ring_s)
+    r_mid = 0.5 * (radius_min_m + radius_max_m)
+    r_amp = max(0.5 * (radius_max_m - radius_min_m) - 0.02, 0.0)
     w_az = 2.0 * np.pi / ring_s
     az0 = rng.uniform(0.0, 2.0 * np.pi)
     az_wob = Sinusoids.make([0.06, 0.025], [0.05, 0.21], 1, rng)
-    rad = Sinusoids.make([0.072, 0.048], [0.045, 0.113], 1, rng)
+    rad = Sinusoids.make([0.6 * r_amp, 0.4 * r_amp], [0.045, 0.113], 1, rng)
     el_wob = Sinusoids.make([np.radians(1.0), np.radians(0.5)], [0.09, 0.31], 1, rng)
     pos_wob, aim_wob, roll_wob = _hand(rng)
 
@@ -98,7 +110,7 @@ def orbit_camera(rng: np.random.Generator, cube_centre: np.ndarray, ring_s: floa
     def pos(t: np.ndarray) -> np.ndarray:
         e = elevation(t)
         az = az0 + w_az * t + az_wob(t)[:, 0]
-        r = 0.52 + rad(t)[:, 0]
+        r = r_mid + rad(t)[:, 0]
         ring = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], axis=1)
         return cube_centre + r[:, None] * ring + pos_wob(t)
 
