@@ -255,6 +255,30 @@ def test_serve_binds_only_loopback(sim_capture):
     assert viewer.process.poll() is not None
 
 
+def test_spawn_without_display_is_one_clear_error(monkeypatch, tmp_path):
+    from vio.errors import VioError
+    from vio.viz import make_rerun_sink
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(VioError, match="no display"):
+        make_rerun_sink(rrd=tmp_path / "x.rrd", spawn=True)
+    assert not list(tmp_path.iterdir())  # no temporary recording left behind
+
+
+def test_recording_survives_a_viewer_that_went_away(sim_capture, tmp_path):
+    from vio.viz import make_rerun_sink
+
+    rrd = tmp_path / "both.rrd"
+    sink = make_rerun_sink(rrd=rrd, serve=True)
+    sink.viewer.stop()  # the user closed it, or it crashed
+    feed(sink, read_asl(sim_capture("orbit", 4.0)), max_frames=6)
+    sink.close()
+    res = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert chunk_summary(rrd)[("/world/camera/image", "EncodedImage")] == 6
+
+
 class _NullSink:
     def on_start(self, *a) -> None: ...
     def on_frame(self, *a) -> None: ...

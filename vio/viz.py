@@ -197,7 +197,10 @@ class RerunSink:
         self._closed = True
         if self._gt is not None:  # no estimate ever came: show the ground truth in its own frame
             self._log_ground_truth(None)
-        self.rec.flush()
+        try:
+            self.rec.flush()
+        except RuntimeError as exc:  # a viewer that went away must not lose the saved recording or the run
+            log.warning("rerun viewer unreachable, its stream was dropped: %s", str(exc).splitlines()[0])
         self.rec.disconnect()  # drops the sinks: the file sink writes its footer and closes
         if self._rrd_tmp is not None and self._rrd is not None:
             self._rrd_tmp.replace(self._rrd)
@@ -216,24 +219,26 @@ def make_rerun_sink(
 ) -> RerunSink:
     """A sink logging to a .rrd file, a loopback web viewer (`serve`, `port` 0: chosen) and/or a native viewer.
 
-    `serve` starts `rerun --serve-web` bound to 127.0.0.1 only and logs the URL to open in a browser.
+    `serve` starts `rerun --serve-web` bound to 127.0.0.1 only and logs (INFO) the URL to open in a browser; it
+    keeps serving after the run (see `RerunSink.viewer`). `spawn` starts the native viewer (needs a display); with
+    both, `serve` wins. The .rrd is written to a temporary file beside `rrd` and renamed in `close()`.
     """
     rec = rr.RecordingStream(bp.APP_ID, send_properties=False)
     rec.set_log_time_enabled(False)
     rec.set_log_tick_enabled(False)
     sinks: list[Any] = []
+    viewer = None
+    if serve or spawn:  # first, so that a viewer that cannot start leaves no temporary file behind
+        viewer = start_viewer_process("web" if serve else "native", web_port=port)
+        sinks.append(rr.GrpcSink(viewer.grpc_url))
+        if serve:
+            log.info("rerun web viewer (loopback only): open %s", viewer.url)
     rrd_path = rrd_tmp = None
     if rrd is not None:
         rrd_path = Path(rrd)
         rrd_path.parent.mkdir(parents=True, exist_ok=True)
         rrd_tmp = rrd_path.with_name(f".{rrd_path.name}.tmp")
         sinks.append(rr.FileSink(str(rrd_tmp)))
-    viewer = None
-    if serve or spawn:
-        viewer = start_viewer_process("web" if serve else "native", web_port=port)
-        sinks.append(rr.GrpcSink(viewer.grpc_url))
-        if serve:
-            log.info("rerun web viewer (loopback only): open %s", viewer.url)
     if not sinks:
         raise VioError("make_rerun_sink: nothing to log to (give rrd, serve or spawn)")
     rec.set_sinks(*sinks, default_blueprint=bp.default_blueprint())

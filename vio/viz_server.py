@@ -10,9 +10,11 @@ import contextlib
 import importlib.util
 import logging
 import os
+import re
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -25,6 +27,8 @@ log = logging.getLogger(__name__)
 
 LOOPBACK = "127.0.0.1"
 STARTUP_TIMEOUT_S = 20.0
+NATIVE_SETTLE_S = 2.0
+ANSI_ESCAPE = re.compile(r"\x1b\[[0-9;]*m")
 
 
 @dataclass
@@ -86,8 +90,9 @@ def _wait_listening(proc: subprocess.Popen, port: int, log_path: Path) -> None:
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            tail = log_path.read_text(errors="replace").strip().splitlines()[-3:]
-            raise VioError(f"rerun viewer exited with code {proc.returncode}: {' | '.join(tail) or 'no output'}")
+            lines = ANSI_ESCAPE.sub("", log_path.read_text(errors="replace")).strip().splitlines()
+            last = lines[-1] if lines else "no output"
+            raise VioError(f"rerun viewer exited with code {proc.returncode}: {last} (log: {log_path})")
         with contextlib.suppress(OSError), socket.create_connection((LOOPBACK, port), timeout=0.5):
             return
         time.sleep(0.1)
@@ -108,6 +113,8 @@ def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
         http_port = web_port or free_loopback_port()
         args += ["--serve-web", "--web-viewer-port", str(http_port)]
     elif kind == "native":
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise VioError("no display for the native rerun viewer (DISPLAY is not set); use --serve or --rrd instead")
         args += ["--expect-data-soon"]
     else:
         raise ValueError(f"unknown viewer kind {kind!r}")
@@ -120,5 +127,8 @@ def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
     _wait_listening(proc, grpc_port, viewer.log_path)
     if http_port is not None:
         _wait_listening(proc, http_port, viewer.log_path)
+    else:  # a native viewer listens before it opens its window, which is what fails without a usable display
+        time.sleep(NATIVE_SETTLE_S)
+        _wait_listening(proc, grpc_port, viewer.log_path)
     log.debug("rerun %s viewer pid %d: %s", kind, proc.pid, " ".join(args))
     return viewer
