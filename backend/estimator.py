@@ -81,14 +81,31 @@ class VioEstimator:
         self.init_kind = ""
         self.num_obs: dict[int, int] = {}  # track id -> projection factors in the graph
         self.num_still = 0  # keyframes with a zero-velocity update
+        self._dirty = False  # True when the smoother holds estimates not yet pulled into `values`
         self._segments: dict[int, tuple[int, int]] = {}  # track id -> (segment, views in the segment)
 
     # ----------------------------------------------------------------- helpers
     def _pose(self, k: int) -> np.ndarray:
         return self.values.atPose3(X(k)).matrix()
 
+    def _window(self, k: int) -> range:
+        """Keyframes whose estimates are refreshed after each update and used to triangulate new landmarks."""
+        return range(max(k - 3 * max(self.cfg.max_track_keyframes, 10), 0), k + 1)
+
+    def _recent_keys(self, k: int) -> list[int]:
+        return [key for kk in self._window(k) for key in (X(kk), V(kk), B(kk)) if self.smoother.has(key)]
+
     def _known_poses(self) -> dict[int, np.ndarray]:
-        return {k: self._pose(k) for k in self.t_ns if self.values.exists(X(k))}
+        return {k: self._pose(k) for k in self._window(self.last_k) if self.values.exists(X(k))}
+
+    def _sync(self) -> None:
+        """Pull the full smoother estimate (every keyframe and landmark) into `values`."""
+        if self._dirty:
+            try:
+                self._absorb(self.smoother.estimate())
+            except SolverFailure as exc:
+                self._warn(f"final estimate failed ({exc}); keeping the last per-keyframe estimates")
+            self._dirty = False
 
     def _warn(self, msg: str) -> None:
         log.warning(msg)
@@ -177,6 +194,7 @@ class VioEstimator:
     def finish(self, refine: bool = False) -> dict[str, Any]:
         """Final estimate of all keyframes (and a batch LM refinement when asked); returns counts."""
         info: dict[str, Any] = {"refined": False}
+        self._sync()
         if refine and self.initialised:
             t0 = time.perf_counter()
             try:
@@ -190,6 +208,7 @@ class VioEstimator:
     def states(self) -> list[StateEstimate]:
         """The current (smoothed) estimate of every initialised keyframe, in time order (in the known positions'
         frame when they were given and aligned)."""
+        self._sync()
         out = [self._state(k, 0.0) for k in sorted(self.t_ns) if self.values.exists(X(k))]
         T = self._output_T()
         if T is None:
@@ -201,6 +220,7 @@ class VioEstimator:
 
     def landmarks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(M,) track ids, (M, 3) world points (m), (M,) number of projection factors."""
+        self._sync()
         ids = [j for j in sorted(self.num_obs) if self.values.exists(L(j))]
         pts = np.array([self.values.atPoint3(L(j)) for j in ids]).reshape(-1, 3)
         T = self._output_T()
@@ -358,7 +378,8 @@ class VioEstimator:
             tr.admitted = True
         try:
             self.smoother.update(graph, values, stamps)
-            est = self.smoother.estimate()
+            est = self.smoother.estimate_keys(self._recent_keys(k))
+            self._dirty = True
         except SolverFailure as exc:
             est = self._recover(prev, k, str(exc))
         self._absorb(est)

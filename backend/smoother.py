@@ -70,12 +70,26 @@ class Smoother:
         if self.kind == "fixed_lag":
             self._keys &= set(self._isam.calculateEstimate().keys())
 
+    def estimate_keys(self, keys: list[int]) -> gtsam.Values:
+        """Current estimate of some pose/velocity/bias/point keys only (cheaper than `estimate()` on long runs)."""
+        out = gtsam.Values()
+        try:
+            for key in keys:
+                getter = _GETTERS.get(chr(gtsam.Symbol(key).chr()), "calculateEstimatePoint3")
+                out.insert(key, getattr(self._isam, getter)(key))
+        except RuntimeError as exc:
+            raise SolverFailure(first_line(exc)) from exc
+        return out
+
     def estimate(self) -> gtsam.Values:
         """Current estimate of every variable still in the solver (raises SolverFailure like `update`)."""
         try:
             return self._isam.calculateEstimate()
         except RuntimeError as exc:
             raise SolverFailure(first_line(exc)) from exc
+
+
+_GETTERS = {"x": "calculateEstimatePose3", "v": "calculateEstimateVector", "b": "calculateEstimateConstantBias"}
 
 
 def batch_solve(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int = 100) -> gtsam.Values:
