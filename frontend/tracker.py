@@ -1,10 +1,18 @@
-"""Frame-to-frame feature tracking: pyramidal KLT, forward-backward check, essential-matrix outlier rejection.
+"""Frame-to-frame feature tracking: pyramidal KLT with forward-backward, appearance and epipolar checks.
 
-Pixel coordinates are in the *distorted* image (what the camera delivered), x right, y down. The geometric check
-works on undistorted normalized bearings (`CameraCalib.undistort_to_normalized`): an essential matrix is fitted
-with OpenCV's USAC (MAGSAC++ by default) and the pixel threshold is divided by the mean focal length. When the
-median flow is below `essential_min_flow_px` the two views have (almost) no parallax, the essential matrix is
-degenerate and the check is skipped; the forward-backward check still applies.
+Pixel coordinates are in the *distorted* image (what the camera delivered), x right, y down. Per frame:
+1. pyramidal Lucas-Kanade from the previous frame, then back again: a track whose round trip misses its start by
+   more than `fb_threshold_px` is dropped (occlusions, ambiguous texture);
+2. the patch around the new position must correlate (zero-mean NCC, gain/offset invariant) at least `min_ncc`
+   with the patch around the old one: this drops tracks whose appearance changes quickly (strong perspective
+   change, e.g. a surface seen at a grazing angle close to the camera), where translation-only KLT drifts;
+3. an essential matrix is fitted with OpenCV's USAC (MAGSAC++ by default) to the undistorted normalized bearings
+   (`CameraCalib.undistort_to_normalized`), the pixel threshold divided by the mean focal length, first against
+   the previous frame and then against the frame `essential_lag_frames` back (a wider baseline exposes slow
+   drift that no single frame step shows). When the median flow is below `essential_min_flow_px` the views have
+   (almost) no parallax, the essential matrix is degenerate and that check is skipped;
+4. new Shi-Tomasi corners (grid-bucketed, away from live tracks, sub-pixel refined; `frontend.detection`) top
+   the set up to `max_features`.
 
 Each call to `track` returns every live track: survivors of the previous frame first (in their previous order),
 then new detections. Track ids are int64, start at 0 and are never reused.
@@ -14,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 
 import cv2
 import numpy as np
@@ -35,8 +44,8 @@ _ESSENTIAL_METHODS = {
     "none": None,
 }
 _MIN_POINTS_ESSENTIAL = 8  # fewer correspondences than this: no geometric check
-_KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-TIMING_SECTIONS = ("klt", "fb_check", "ransac", "detect")
+_KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 0.001)
+TIMING_SECTIONS = ("klt", "fb_check", "ncc", "ransac", "detect")
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -72,9 +81,17 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._ages = np.zeros(0, np.int64)
         self._next_id = 0
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(int(cfg.essential_lag_frames), 1))
         self.num_frames = 0
         self.timings_s = dict.fromkeys(TIMING_SECTIONS, 0.0)  # accumulated wall time per section, s
-        self.stats = {"fb_rejected": 0, "essential_rejected": 0, "essential_skipped": 0, "detected": 0}
+        self.stats = {
+            "fb_rejected": 0,
+            "essential_rejected": 0,
+            "essential_skipped": 0,
+            "ncc_rejected": 0,
+            "essential_lag_rejected": 0,
+            "detected": 0,
+        }
 
     def ages(self) -> np.ndarray:
         """(N,) int64: for each track last returned, the number of frames it has been seen in (1 = new)."""
@@ -86,6 +103,7 @@ class FeatureTracker:
         self._uv = np.zeros((0, 2))
         self._ids = np.zeros(0, np.int64)
         self._ages = np.zeros(0, np.int64)
+        self._history.clear()
 
     def _tick(self, section: str, t0: float) -> float:
         t1 = time.perf_counter()
@@ -116,13 +134,14 @@ class FeatureTracker:
             self._next_id += n
             self.stats["detected"] += n
         self._tick("detect", t0)
+        self._history.append((self._ids.copy(), self._uv.copy()))
         self._prev_gray = gray
         self._prev_t_ns = frame.t_ns
         self.num_frames += 1
         return FeatureTracks(int(frame.t_ns), self._ids.copy(), self._uv.copy(), int(frame.cam_id))
 
     def _follow(self, gray: np.ndarray) -> None:
-        """KLT forward, KLT backward (forward-backward check), border check, essential-matrix check."""
+        """KLT forward and back (forward-backward check), border, appearance (NCC) and essential-matrix checks."""
         cfg = self.cfg
         t0 = time.perf_counter()
         p0 = self._uv.astype(np.float32).reshape(-1, 1, 2)
@@ -150,10 +169,25 @@ class FeatureTracker:
         self.stats["fb_rejected"] += int((~ok).sum())
         ok &= (uv1[:, 0] >= b) & (uv1[:, 0] <= w - 1 - b) & (uv1[:, 1] >= b) & (uv1[:, 1] <= h - 1 - b)
         t0 = self._tick("fb_check", t0)
+        if cfg.min_ncc > -1.0:
+            ncc = np.full(ok.shape, -1.0)
+            ncc[ok] = patch_ncc(self._prev_gray, uv0[ok], gray, uv1[ok], cfg.ncc_radius_px)
+            self.stats["ncc_rejected"] += int((ok & (ncc < cfg.min_ncc)).sum())
+            ok &= ncc >= cfg.min_ncc
+        t0 = self._tick("ncc", t0)
         idx = np.flatnonzero(ok)
         inliers = self._essential_inliers(uv0[idx], uv1[idx])
         self.stats["essential_rejected"] += int((~inliers).sum())
         idx = idx[inliers]
+        lag = int(cfg.essential_lag_frames)
+        if lag > 1 and len(self._history) >= lag:
+            ref_ids, ref_uv = self._history[-lag]
+            _, i_ref, i_cur = np.intersect1d(ref_ids, self._ids[idx], assume_unique=True, return_indices=True)
+            far = self._essential_inliers(ref_uv[i_ref], uv1[idx][i_cur])
+            drop = np.zeros(idx.size, bool)
+            drop[i_cur[~far]] = True
+            self.stats["essential_lag_rejected"] += int(drop.sum())
+            idx = idx[~drop]
         self._tick("ransac", t0)
         self._uv = uv1[idx]
         self._ids = self._ids[idx]
@@ -181,3 +215,32 @@ class FeatureTracker:
             self.stats["essential_skipped"] += 1
             return keep
         return mask.ravel().astype(bool)
+
+
+def sample_patches(gray: np.ndarray, uv: np.ndarray, radius: int) -> np.ndarray:
+    """(N, 2r+1, 2r+1) float32 patches centred on (N, 2) sub-pixel positions (bilinear; border replicated)."""
+    n = uv.shape[0]
+    d = np.arange(-radius, radius + 1, dtype=np.float32)
+    size = d.size
+    map_x = (uv[:, 0].astype(np.float32)[:, None, None] + d[None, None, :]).repeat(size, axis=1)
+    map_y = (uv[:, 1].astype(np.float32)[:, None, None] + d[None, :, None]).repeat(size, axis=2)
+    out = cv2.remap(
+        gray,
+        map_x.reshape(n * size, size),
+        map_y.reshape(n * size, size),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return out.reshape(n, size, size).astype(np.float32)
+
+
+def patch_ncc(gray0: np.ndarray, uv0: np.ndarray, gray1: np.ndarray, uv1: np.ndarray, radius: int) -> np.ndarray:
+    """(N,) normalized cross-correlation of the patches at uv0 in gray0 and uv1 in gray1 (1: identical up to gain)."""
+    if uv0.shape[0] == 0:
+        return np.zeros(0)
+    a = sample_patches(gray0, uv0, radius).reshape(uv0.shape[0], -1)
+    b = sample_patches(gray1, uv1, radius).reshape(uv1.shape[0], -1)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    return np.where(den > 0, (a * b).sum(axis=1) / np.maximum(den, 1e-12), 0.0)

@@ -204,8 +204,9 @@ def sampson_px(F: np.ndarray, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
 def test_middlebury_temple_tracks_satisfy_the_known_epipolar_geometry():
     """Views 7.7 deg apart around a real object: tracks agree with F from the calibrated K, R, t.
 
-    Measured (this machine): median Sampson 0.094 px, 99th percentile 0.82 px, none above 2 px, 150 tracks in
-    every view; with the essential-matrix check off the 99th percentile is 1.9 px and the worst 27 px.
+    Measured (this machine, default config): median Sampson distance 0.073 px, 99th percentile 0.71 px, worst
+    1.2 px, 57-108 tracks shared by consecutive views. With `essential_method=none` (no epipolar check) the 99th
+    percentile is 1.13 px, 0.3% exceed 2 px and the worst is 38 px.
     """
     views, cam = _middlebury_views()
     trk = FeatureTracker(cam, TrackerConfig())
@@ -216,7 +217,7 @@ def test_middlebury_temple_tracks_satisfy_the_known_epipolar_geometry():
         if prev is not None:
             tr0, K0, R0, t0 = prev
             _, i0, i1 = np.intersect1d(tr0.ids, tr.ids, return_indices=True)
-            assert i0.size >= 60
+            assert i0.size >= 40
             R10 = R @ R0.T
             t10 = t - R10 @ t0
             F = np.linalg.inv(K).T @ skew(t10) @ R10 @ np.linalg.inv(K0)
@@ -224,9 +225,9 @@ def test_middlebury_temple_tracks_satisfy_the_known_epipolar_geometry():
         prev = (tr, K, R, t)
     e = np.concatenate(errors)
     assert len(errors) == 18
-    assert np.median(e) < 0.25
-    assert np.percentile(e, 99) < 1.5
-    assert np.mean(e > 2.0) < 0.005
+    assert np.median(e) < 0.2
+    assert np.percentile(e, 99) < 1.0
+    assert np.mean(e > 2.0) < 0.002 and e.max() < 5.0
 
 
 def test_euroc_still_camera_gives_still_tracks():
@@ -268,3 +269,68 @@ def test_euroc_still_camera_gives_still_tracks():
     )
     ok = st.ravel() == 1
     assert np.median(np.linalg.norm(direct[ok] - uv[-1, alive][ok], axis=1)) < 0.1
+
+
+# --- rendered capture with ground truth ----------------------------------------------------------------------------
+
+
+def triangulate(cam_T_world: np.ndarray, xy: np.ndarray, iterations: int = 5) -> np.ndarray:
+    """World point (3,) from (M, 4, 4) camera poses and (M, 2) undistorted normalized observations.
+
+    Linear (DLT) solution refined by Gauss-Newton on the normalized-plane residuals.
+    """
+    P = cam_T_world[:, :3, :]
+    A = np.concatenate([xy[:, :1] * P[:, 2] - P[:, 0], xy[:, 1:2] * P[:, 2] - P[:, 1]])
+    X = np.linalg.svd(A)[2][-1]
+    X = X[:3] / X[3]
+    for _ in range(iterations):
+        pc = P[:, :, :3] @ X + P[:, :, 3]
+        z = pc[:, 2:3]
+        r = (pc[:, :2] / z - xy).ravel()
+        J = np.stack([P[:, 0, :3] - pc[:, :1] / z * P[:, 2, :3], P[:, 1, :3] - pc[:, 1:2] / z * P[:, 2, :3]], axis=1)
+        X = X - np.linalg.lstsq((J / z[:, :, None]).reshape(-1, 3), r, rcond=None)[0]
+    return X
+
+
+def test_orbit_tracks_triangulate_with_ground_truth_poses(sim_capture):
+    """Rendered orbit (3 s, 60 frames, 640x480, phone-like radtan lens): tracks are geometrically right.
+
+    Each track seen in >= 3 frames is triangulated from the ground-truth camera poses (world_T_body of the capture's
+    ground truth composed with body_T_cam) and reprojected into every frame that saw it (distorted pixels).
+    A track's error is its RMS reprojection error. Measured: 150 tracks every frame, median residual 0.19 px,
+    2.5% of tracks with RMS above 2 px (5.1% with their worst observation above 2 px; the bad ones are on the
+    table top seen at a grazing angle, the walls and the cube have none).
+    """
+    from vio.capture import read_asl
+
+    cap = read_asl(sim_capture("orbit", duration_s=3.0))
+    cam = cap.camera
+    trk = FeatureTracker(cam, TrackerConfig())
+    obs: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for k, frame in enumerate(cap.frames()):
+        tr = trk.track(frame)
+        assert tr.ids.size >= 80
+        for i, uv in zip(tr.ids.tolist(), tr.uv, strict=True):
+            obs.setdefault(i, []).append((k, uv))
+    gt = cap.ground_truth
+    idx = np.searchsorted(gt.t_ns, cap.frame_t_ns)
+    assert np.array_equal(gt.t_ns[idx], cap.frame_t_ns), "ground truth must be sampled at the frame times"
+    cam_T_world = np.stack([np.linalg.inv(gt.world_T_body(int(i)) @ cam.body_T_cam) for i in idx])
+    residuals, track_rms = [], []
+    for lst in obs.values():
+        if len(lst) < 3:
+            continue
+        ks = np.array([k for k, _ in lst])
+        uv = np.array([u for _, u in lst])
+        X = triangulate(cam_T_world[ks], cam.undistort_to_normalized(uv))
+        p_cam = X @ cam_T_world[ks, :3, :3].transpose(0, 2, 1) + cam_T_world[ks, :3, 3]
+        if np.any(p_cam[:, 2] <= 0):
+            track_rms.append(np.inf)
+            continue
+        r = np.linalg.norm(cam.project(p_cam) - uv, axis=1)
+        residuals.append(r)
+        track_rms.append(float(np.sqrt(np.mean(r**2))))
+    r = np.concatenate(residuals)
+    assert len(track_rms) >= 300
+    assert np.median(r) < 0.5
+    assert np.mean(np.asarray(track_rms) > 2.0) < 0.05
