@@ -12,7 +12,7 @@ import pytest
 
 from vio.bench import run_suite
 from vio.bench.report import ROW_KEYS, markdown, median_table, paired_ratio
-from vio.bench.suites import IMU_ONLY, VIO, Case, Method, Suite, get_suite
+from vio.bench.suites import IMU_ONLY, VIO, VISION_ONLY, Case, Method, Suite, get_suite
 
 
 def _needs_sim() -> None:
@@ -80,7 +80,7 @@ def _check_schema(rows: list[dict]) -> None:
 @pytest.fixture(scope="module")
 def tiny_bench(tmp_path_factory):
     _needs_sim()
-    methods = (IMU_ONLY, VIO) if importlib.util.find_spec("vio.pipeline") else (IMU_ONLY,)
+    methods = (IMU_ONLY, VIO, VISION_ONLY) if importlib.util.find_spec("vio.pipeline") else (IMU_ONLY,)
     suite = Suite("tiny", get_suite("tiny").cases, methods)
     out = tmp_path_factory.mktemp("bench")
     run_suite(suite, out, jobs=2)
@@ -112,6 +112,10 @@ def test_tiny_suite_vio_row(tiny_bench):
     assert "error" not in vio, vio.get("error")
     assert vio["ate_se3_m"] < 0.05  # 4 s orbit, phone IMU: the estimator must be far better than imu_only
     assert vio["latency_ms_p50"] is not None and vio["latency_ms_max"] >= vio["latency_ms_p50"]
+    vo = next(r for r in rows if r["method"] == "vision_only")
+    assert "error" not in vo, vo.get("error")
+    assert vo["ate_se3_m"] is None and vo["ate_posyaw_m"] is None  # no metric scale: Sim3 only
+    assert vo["ate_sim3_m"] is not None and vo["scale"] > 0
 
 
 def test_cli_bench_help():

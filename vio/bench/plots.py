@@ -59,7 +59,7 @@ def _traces(out: Path, case_key: str) -> dict[str, np.ndarray]:
 def _grid(n: int) -> tuple[plt.Figure, np.ndarray]:
     cols = min(n, 3)
     rows = int(np.ceil(n / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.4 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.4 * rows), squeeze=False, layout="constrained")
     for ax in axes.flat[n:]:
         ax.set_visible(False)
     return fig, axes.flat
