@@ -1,6 +1,6 @@
 """Rendered images agree with the ground-truth geometry: cube corners measured on the image itself.
 
-The three edges leaving the cube corner nearest the camera are located in the rendered (noisy, distorted) image
+The edges leaving the cube corner nearest the camera are located in the rendered (noisy, distorted) image
 along normals to their predicted projections (where the profile crosses the mean of its two sides); straight-line
 fits of the offsets, extrapolated to the corner, give the measured corner's displacement from the projection of
 the true corner with the ground-truth pose and calibration.
@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
 from vio.sim.api import load_scenario
 from vio.sim.render import Renderer, camera_poses
@@ -45,40 +44,57 @@ def _edge_offsets(img: np.ndarray, cam, p0_cam: np.ndarray, p1_cam: np.ndarray) 
     return np.asarray(cross_f), np.asarray(cross_off), normal
 
 
-def _fit_start(f: np.ndarray, off: np.ndarray) -> float:
-    """Robust straight-line fit of the offsets over f, evaluated at the edge's start f = 0."""
+def _fit_start(f: np.ndarray, off: np.ndarray) -> float | None:
+    """Robust straight-line fit of the offsets over f, evaluated at the edge's start f = 0 (None: too few)."""
     keep = np.ones(f.size, bool)
     for _ in range(3):
-        assert keep.sum() >= 12, "too few edge samples with contrast"
+        if keep.sum() < 12:
+            return None
         a, b = np.polyfit(f[keep], off[keep], 1)
         res = np.abs(off - (a * f + b))
         keep = res < max(3.0 * np.median(res[keep]), 0.1)
     return float(b)
 
 
-@pytest.mark.parametrize("t_s", [22.0, 37.0, 47.0, 52.0])
-def test_cube_corners_land_on_rendered_corners(t_s):
-    """The cube corner nearest the camera (where three visible faces meet) from the three edges leaving it."""
-    sc = load_scenario("orbit", seed=0)
-    renderer = Renderer(sc.scene, sc.camera)
+def _corner_error(sc, renderer: Renderer, t_s: float) -> float | None:
+    """Measured minus projected position (px) of the cube corner nearest the camera, None if not measurable.
+
+    The corner must join three faces turned towards the camera; an edge is used when both faces along it are
+    seen at more than ~12 deg from grazing (a sliver face has no plateau to measure against).
+    """
     world_T_cam = camera_poses(sc, np.array([sc.t0_ns + int(t_s * 1e9)]))[0]
-    img = renderer.render(world_T_cam, np.random.default_rng(1))
     corners = sc.scene.object_corners_world()
-    near = int(np.argmin(np.linalg.norm(corners - world_T_cam[:3, 3], axis=1)))
-    lo, hi = corners[0], corners[7]
     o = world_T_cam[:3, 3]
-    # The camera is outside the three face planes at that corner, so all three faces and edges are visible.
-    assert all((o[k] > hi[k]) if (near >> k) & 1 else (o[k] < lo[k]) for k in range(3))
+    near = int(np.argmin(np.linalg.norm(corners - o, axis=1)))
+    view = (o - corners[near]) / np.linalg.norm(o - corners[near])
+    cos = np.array([view[k] * (1.0 if (near >> k) & 1 else -1.0) for k in range(3)])  # per face normal axis
+    if np.any(cos <= 0.0):
+        return None
+    img = renderer.render(world_T_cam, np.random.default_rng(1))
     cam_T_world = np.linalg.inv(world_T_cam)
     p_cam = corners @ cam_T_world[:3, :3].T + cam_T_world[:3, 3]
     rows, rhs = [], []
     for k in range(3):
+        if min(cos[(k + 1) % 3], cos[(k + 2) % 3]) < 0.2:
+            continue
         f, off, normal = _edge_offsets(img, sc.camera, p_cam[near], p_cam[near ^ (1 << k)])
-        keep = f < 0.8
-        rows.append(normal[0])
-        rhs.append(_fit_start(f[keep], off[keep]))
+        start = _fit_start(f[f < 0.8], off[f < 0.8])
+        if start is not None:
+            rows.append(normal[0])
+            rhs.append(start)
+    if len(rows) < 2 or np.linalg.svd(np.array(rows), compute_uv=False)[-1] < 0.35:
+        return None
     delta, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
-    assert np.linalg.norm(delta) < 0.5, (delta, rhs)
+    return float(np.linalg.norm(delta))
+
+
+def test_cube_corners_land_on_rendered_corners():
+    """The corner nearest the camera, measured on the image every 1.25 s of the three upper rings of the orbit."""
+    sc = load_scenario("orbit", seed=0)
+    renderer = Renderer(sc.scene, sc.camera)
+    errors = [e for t in np.arange(16.25, 60.0, 1.25) if (e := _corner_error(sc, renderer, float(t))) is not None]
+    assert len(errors) >= 15, f"only {len(errors)} corners measurable"
+    assert max(errors) < 0.5, errors
 
 
 def test_klt_tracks_follow_the_geometry():
