@@ -83,3 +83,11 @@ def test_time_offset_on_the_simulated_orbit(sim_capture):
     # the simulator's gyro itself sits about +3 ms from its ground-truth rotation (see docs/BENCHMARKS.md)
     assert abs(base.offset_ns * 1e-6) < 8.0
     assert abs((shifted.offset_ns - base.offset_ns) * 1e-6 - 30.0) < 2.0
+
+
+def test_info_on_gtsams_eqvio_tracks():
+    import gtsam
+
+    text = capture_info(gtsam.findExampleDataFile("eqvio_processed_30s.csv"))
+    assert "format: eqvio" in text and "601 frames of precomputed feature tracks" in text
+    assert "6001 samples, 200.0 Hz" in text and "time offset" not in text

@@ -39,7 +39,8 @@ def describe(cap: Capture, offset: bool = True) -> list[str]:
     lines = [f"capture: {cap.root} (format: {cap.format})"]
     if cap.num_frames:
         rate, med = _rate(cap.frame_t_ns)
-        lines.append(f"camera: {cap.num_frames} frames, {rate:.2f} Hz (median interval {med:.2f} ms)")
+        kind = "frames of precomputed feature tracks (no images)" if cap.tracks is not None else "frames"
+        lines.append(f"camera: {cap.num_frames} {kind}, {rate:.2f} Hz (median interval {med:.2f} ms)")
         lines.append(f"  span: {_span(cap.frame_t_ns)}; gaps: {_gaps(cap.frame_t_ns, 2.5)}")
     elif cap.tracks is not None:
         lines.append(f"camera: no images; {len(cap.tracks)} frames of precomputed feature tracks")
@@ -82,7 +83,7 @@ def describe(cap: Capture, offset: bool = True) -> list[str]:
         )
     if cap.ground_truth is not None:
         lines.append(f"ground truth: {len(cap.ground_truth)} poses, span {_span(cap.ground_truth.t_ns)}")
-    if offset and cap.num_frames >= 10 and cap.imu is not None:
+    if offset and cap.num_frames >= 10 and cap.imu is not None and cap.tracks is None:
         from vio.readers.offset import estimate_time_offset
 
         est = estimate_time_offset(cap)

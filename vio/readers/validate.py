@@ -148,7 +148,7 @@ def finish_capture(cap: Capture, source: Path, strict: bool = True) -> list[str]
     if cap.imu is not None and cap.imu_calib is None:
         cap.imu_calib = PHONE_IMU_DEFAULT
         cap.warn(f"{source}: no IMU noise calibration; assuming phone-grade defaults {PHONE_IMU_DEFAULT}")
-    if cap.num_frames > 0 and cap.camera is not None and not errors:
+    if cap.num_frames > 0 and cap.camera is not None and cap.tracks is None and not errors:
         img = cap.load_image(0)
         h, w = img.shape[:2]
         if (w, h) != (cap.camera.width, cap.camera.height):
