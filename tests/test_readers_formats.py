@@ -26,6 +26,8 @@ def _write(kind, ref, tmp_path):
         return write_ros1(ref, tmp_path / "r1" / "capture.bag")
     if kind == "mars":
         return write_mars(ref, tmp_path / "mars")
+    if kind == "mars-ios":
+        return write_mars(ref, tmp_path / "mars", platform="iOS")
     if kind == "opencamera":
         return write_opencamera(ref, tmp_path / "oc")
     if kind == "sensorlogger-android":
@@ -40,6 +42,7 @@ FORMAT_OF = {
     "ros2-mcap-compressed": "ros2",
     "ros1": "ros1",
     "mars": "mars",
+    "mars-ios": "mars",
     "opencamera": "opencamera",
     "sensorlogger-android": "sensorlogger",
     "sensorlogger-ios": "sensorlogger",
@@ -144,3 +147,38 @@ def test_tumvi_layout_needs_a_pinhole_calibration(ref, tmp_path):
     (tmp_path / "pinhole.yaml").write_text(calib_yaml_text(ref.camera, None))
     cap = open_capture(root, calib=tmp_path / "pinhole.yaml")
     assert cap.format == "tumvi" and cap.camera.fx == ref.camera.fx
+
+
+@pytest.mark.parametrize("encoding", ["mono8", "mono16", "bgr8", "rgb8", "bgra8", "rgba8"])
+def test_ros_image_encodings_decode_to_the_same_grey(encoding):
+    import cv2
+    from rosbags.typesys import Stores, get_typestore
+
+    from vio.readers.rosbag import decode_image
+
+    rng = np.random.default_rng(1)
+    grey = rng.integers(0, 256, (6, 5), dtype=np.uint8)
+    bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    data, ch = {
+        "mono8": (grey, 1),
+        "mono16": (grey.astype("<u2") * 256 + 7, 2),
+        "bgr8": (bgr, 3),
+        "rgb8": (bgr[:, :, ::-1], 3),
+        "bgra8": (cv2.cvtColor(bgr, cv2.COLOR_BGR2BGRA), 4),
+        "rgba8": (cv2.cvtColor(bgr, cv2.COLOR_BGR2RGBA), 4),
+    }[encoding]
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    Image, Header, Time = (
+        ts.types[k] for k in ("sensor_msgs/msg/Image", "std_msgs/msg/Header", "builtin_interfaces/msg/Time")
+    )
+    raw = np.ascontiguousarray(data).view(np.uint8).reshape(-1)
+    msg = Image(
+        header=Header(stamp=Time(sec=1, nanosec=0), frame_id="c"),
+        height=6,
+        width=5,
+        encoding=encoding,
+        is_bigendian=0,
+        step=5 * ch,
+        data=raw,
+    )
+    np.testing.assert_array_equal(decode_image(msg, Image.__msgtype__, "test"), grey)

@@ -14,14 +14,34 @@ from . import fmt_row, write_calib, write_video
 STANDARD_G = 9.80665
 
 
-def write_mars(cap: Capture, out: Path, fourcc: str = "FFV1") -> Path:
-    """Android MARS layout: movie.mp4 (lossless FFV1 here; H.264 on the phone), frame_timestamps.txt, gyro_accel.csv."""
+def _seconds(t_ns: int) -> str:
+    return f"{t_ns // 1_000_000_000}.{t_ns % 1_000_000_000:09d}"
+
+
+def write_mars(cap: Capture, out: Path, fourcc: str = "FFV1", platform: str = "Android") -> Path:
+    """MARS logger folder: movie.mp4 (lossless FFV1 here; H.264 on the phone) and gyro_accel.csv.
+
+    Android: frame_timestamps.txt (ns) and ns IMU times; iOS: frame times in movie_metadata.csv and every time in
+    seconds (`[sec]` headers, 9 decimals).
+    """
     out.mkdir(parents=True)
     write_video(out / "movie.mp4", cap, fourcc=fourcc)
-    (out / "frame_timestamps.txt").write_text("".join(f"{int(t)}\n" for t in cap.frame_t_ns))
-    lines = ["Timestamp[nanosec],gx[rad/s],gy[rad/s],gz[rad/s],ax[m/s^2],ay[m/s^2],az[m/s^2],Unix time[nanosec]"]
-    for t, w, a in zip(cap.imu.t_ns, cap.imu.gyro, cap.imu.acc, strict=True):
-        lines.append(f"{int(t)},{fmt_row(w)},{fmt_row(a)},{int(t) + 1_600_000_000_000_000_000}")
+    ios = platform.lower() == "ios"
+    if ios:
+        rows = [
+            f"{_seconds(int(t))},{cap.camera.fx!r},{cap.camera.fy!r},{cap.camera.width},{cap.camera.height},0.01"
+            for t in cap.frame_t_ns
+        ]
+        header = "Timestamp[sec],fx[px],fy[px],Frame W[px],Frame H[px],Exposure duration[sec]"
+        (out / "movie_metadata.csv").write_text("\n".join([header, *rows]) + "\n")
+        lines = ["Timestamp[sec],gx[rad/s],gy[rad/s],gz[rad/s],ax[m/s^2],ay[m/s^2],az[m/s^2]"]
+        for t, w, a in zip(cap.imu.t_ns, cap.imu.gyro, cap.imu.acc, strict=True):
+            lines.append(f"{_seconds(int(t))},{fmt_row(w)},{fmt_row(a)}")
+    else:
+        (out / "frame_timestamps.txt").write_text("".join(f"{int(t)}\n" for t in cap.frame_t_ns))
+        lines = ["Timestamp[nanosec],gx[rad/s],gy[rad/s],gz[rad/s],ax[m/s^2],ay[m/s^2],az[m/s^2],Unix time[nanosec]"]
+        for t, w, a in zip(cap.imu.t_ns, cap.imu.gyro, cap.imu.acc, strict=True):
+            lines.append(f"{int(t)},{fmt_row(w)},{fmt_row(a)},{int(t) + 1_600_000_000_000_000_000}")
     (out / "gyro_accel.csv").write_text("\n".join(lines) + "\n")
     write_calib(out, cap)
     return out
