@@ -182,3 +182,16 @@ def test_ros_image_encodings_decode_to_the_same_grey(encoding):
         data=raw,
     )
     np.testing.assert_array_equal(decode_image(msg, Image.__msgtype__, "test"), grey)
+
+
+def test_sensorlogger_ios_uncalibrated_accelerometer_in_g(ref, tmp_path):
+    """Only AccelerometerUncalibrated.csv (iOS: g, CoreMotion sign): converted to m/s^2 specific force."""
+    path = write_sensorlogger(ref, tmp_path / "sl", platform="iOS")
+    for name in ("Accelerometer.csv", "Gravity.csv"):
+        (path / name).unlink()
+    lines = ["time,seconds_elapsed,z,y,x"]
+    for t, a in zip(ref.imu.t_ns, -ref.imu.acc / 9.80665, strict=True):
+        lines.append(f"{int(t)},0.0,{a[2]!r},{a[1]!r},{a[0]!r}")
+    (path / "AccelerometerUncalibrated.csv").write_text("\n".join(lines) + "\n")
+    cap = open_capture(path)
+    np.testing.assert_allclose(cap.imu.acc, ref.imu.acc, rtol=0, atol=1e-12)
