@@ -191,7 +191,7 @@ def test_sensorlogger_ios_uncalibrated_accelerometer_in_g(ref, tmp_path):
         (path / name).unlink()
     lines = ["time,seconds_elapsed,z,y,x"]
     for t, a in zip(ref.imu.t_ns, -ref.imu.acc / 9.80665, strict=True):
-        lines.append(f"{int(t)},0.0,{a[2]!r},{a[1]!r},{a[0]!r}")
+        lines.append(f"{int(t)},0.0,{float(a[2])!r},{float(a[1])!r},{float(a[0])!r}")
     (path / "AccelerometerUncalibrated.csv").write_text("\n".join(lines) + "\n")
     cap = open_capture(path)
     np.testing.assert_allclose(cap.imu.acc, ref.imu.acc, rtol=0, atol=1e-12)
