@@ -21,6 +21,7 @@ from vio.config import TrackerConfig
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
 _MAX_CANDIDATES = 20000  # strongest local maxima considered; more only costs time
+_CANDIDATES_PER_SLOT = 8  # candidates examined per corner still wanted (the others fail min_distance first)
 
 
 def occupancy_mask(shape: tuple[int, int], uv: np.ndarray, radius_px: float, border_px: int) -> np.ndarray:
@@ -43,6 +44,16 @@ def cell_index(uv: np.ndarray, shape: tuple[int, int], rows: int, cols: int) -> 
     c = np.clip((uv[:, 0] * cols / w).astype(np.int64), 0, cols - 1)
     r = np.clip((uv[:, 1] * rows / h).astype(np.int64), 0, rows - 1)
     return r * cols + c
+
+
+def _rank_within_cell(cells: np.ndarray, ncells: int) -> np.ndarray:
+    """(N,) rank of each candidate among those of its cell, for candidates already sorted strongest first."""
+    order = np.argsort(cells, kind="stable")  # stable: keeps strongest-first within each cell
+    counts = np.bincount(cells, minlength=ncells)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.empty(cells.size, np.int64)
+    rank[order] = np.arange(cells.size) - np.repeat(starts, counts)
+    return rank
 
 
 def detect_corners(
@@ -81,19 +92,25 @@ def detect_corners(
     budget = num_wanted + max(2, num_wanted // 10)  # spares for corners that refinement pushes over the border
     taken = np.zeros(xs.size, bool)
     accepted: list[int] = []
-    for use_quota in (True, False):
-        for i in range(xs.size):
+
+    def greedy(order: np.ndarray, quota: bool) -> None:
+        for i in order.tolist():
             if len(accepted) >= budget:
-                break
-            if taken[i] or (use_quota and free[cells[i]] <= 0):
-                continue
-            x, y = int(xs[i]), int(ys[i])
-            if mask[y, x] == 0:
+                return
+            c = cells[i]
+            if taken[i] or (quota and free[c] <= 0) or mask[ys[i], xs[i]] == 0:
                 continue
             taken[i] = True
             accepted.append(i)
-            free[cells[i]] -= 1
-            cv2.circle(mask, (x, y), r, 0, -1)
+            free[c] -= 1
+            cv2.circle(mask, (int(xs[i]), int(ys[i])), r, 0, -1)
+
+    # pass 1: per-cell quotas; only the strongest few candidates of each cell can matter
+    rank = _rank_within_cell(cells, ncells)
+    greedy(np.flatnonzero(rank < _CANDIDATES_PER_SLOT * np.maximum(free[cells], 0)), quota=True)
+    # pass 2: fill up without quotas where texture is concentrated (bounded candidate list)
+    if len(accepted) < num_wanted:
+        greedy(np.flatnonzero(~taken)[: _CANDIDATES_PER_SLOT * budget], quota=False)
     if not accepted:
         return empty
     idx = np.asarray(accepted)
