@@ -255,19 +255,6 @@ class Renderer:
         return np.clip(np.rint(val), 0, 255).astype(np.uint8)
 
 
-_WORKER: dict = {}
-
-
-def _init_worker(scene: Scene, camera) -> None:
-    cv2.setNumThreads(1)
-    _WORKER["renderer"] = Renderer(scene, camera)
-
-
-def _render_one(job: tuple[np.ndarray, np.random.SeedSequence]) -> bytes:
-    world_T_cam, seq = job
-    return encode_png(_WORKER["renderer"].render(world_T_cam, np.random.default_rng(seq)))
-
-
 def camera_poses(sc, t_ns: np.ndarray) -> np.ndarray:
     """(F, 4, 4) world_T_cam of scenario `sc` at frame times t_ns."""
     p, R = sc.trajectory.pose((t_ns - sc.t0_ns).astype(np.float64) * 1e-9)
@@ -280,11 +267,9 @@ def camera_poses(sc, t_ns: np.ndarray) -> np.ndarray:
 def render_pngs(sc, t_ns: np.ndarray, image_seed: np.random.SeedSequence, workers: int | None = None):
     """Yield the PNG bytes of each frame in order; frame i's noise comes from image_seed.spawn(F)[i].
 
-    Frames are rendered by `workers` processes (default 2 when there are 40+ frames), each building its own
-    renderer; the bytes do not depend on the number of workers.
+    Frames are rendered by `workers` processes (default 2 when there are 40+ frames, see `vio.sim.workers`);
+    the bytes do not depend on the number of workers.
     """
-    import multiprocessing as mp
-
     poses = camera_poses(sc, t_ns)
     jobs = list(zip(poses, image_seed.spawn(len(t_ns)), strict=True))
     if workers is None:
@@ -294,7 +279,6 @@ def render_pngs(sc, t_ns: np.ndarray, image_seed: np.random.SeedSequence, worker
         for world_T_cam, seq in jobs:
             yield encode_png(renderer.render(world_T_cam, np.random.default_rng(seq)))
         return
-    # forkserver: a fresh process forks the workers (forking this process can deadlock OpenCV's thread pool).
-    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-    with mp.get_context(method).Pool(workers, initializer=_init_worker, initargs=(sc.scene, sc.camera)) as pool:
-        yield from pool.imap(_render_one, jobs, chunksize=4)
+    from vio.sim.workers import render_in_workers
+
+    yield from render_in_workers(sc.scene, sc.camera, jobs, workers)

@@ -1,0 +1,96 @@
+"""Render worker processes: fresh interpreters (`python -m vio.sim.workers`) fed over pipes.
+
+Not `multiprocessing`: forking a process whose OpenCV thread pool has run can deadlock the child, and the
+spawn/fork-server methods re-run the caller's `__main__` script in every worker (a script without a main guard
+then never finishes). Frame i goes to worker i % W; results are read back in frame order, so the output does not
+depend on W. Protocol: length-prefixed pickles; the first message is (scene, camera), then one (pose, seed) per
+frame, answered by the frame's PNG bytes; an empty message ends the worker.
+"""
+
+from __future__ import annotations
+
+import pickle
+import struct
+import subprocess
+import sys
+from collections.abc import Iterator
+from typing import IO, Any
+
+import numpy as np
+
+from vio.errors import SimulationError
+
+_LEN = struct.Struct("<Q")
+
+
+def _send(stream: IO[bytes], obj: Any) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(_LEN.pack(len(data)) + data)
+    stream.flush()
+
+
+def _recv(stream: IO[bytes]) -> Any:
+    head = stream.read(_LEN.size)
+    if len(head) < _LEN.size:
+        raise EOFError
+    (n,) = _LEN.unpack(head)
+    data = stream.read(n)
+    if len(data) < n:
+        raise EOFError
+    return pickle.loads(data)
+
+
+def render_in_workers(
+    scene, camera, jobs: list[tuple[np.ndarray, np.random.SeedSequence]], workers: int
+) -> Iterator[bytes]:
+    """Yield the PNG bytes of each (world_T_cam, seed) job in order, rendered by `workers` processes."""
+    procs = [
+        subprocess.Popen([sys.executable, "-m", "vio.sim.workers"], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        for _ in range(workers)
+    ]
+    try:
+        for p in procs:
+            _send(p.stdin, (scene, camera))
+        ahead = 2  # jobs queued per worker
+        for i in range(min(len(jobs), ahead * workers)):
+            _send(procs[i % workers].stdin, jobs[i])
+        for i in range(len(jobs)):
+            p = procs[i % workers]
+            try:
+                png = _recv(p.stdout)
+            except EOFError:
+                raise SimulationError(f"render worker {i % workers} stopped (exit code {p.wait()})") from None
+            nxt = i + ahead * workers
+            if nxt < len(jobs):
+                _send(p.stdin, jobs[nxt])
+            yield png
+        for p in procs:
+            _send(p.stdin, None)
+            p.wait()
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+
+def main() -> int:
+    import cv2
+
+    from vio.capture import encode_png
+    from vio.sim.render import Renderer
+
+    cv2.setNumThreads(1)
+    stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    scene, camera = _recv(stdin)
+    renderer = Renderer(scene, camera)
+    while True:
+        job = _recv(stdin)
+        if job is None:
+            return 0
+        world_T_cam, seed = job
+        _send(stdout, encode_png(renderer.render(world_T_cam, np.random.default_rng(seed))))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
