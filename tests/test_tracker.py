@@ -201,6 +201,46 @@ def sampson_px(F: np.ndarray, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
     return num / np.sqrt(Fx0[:, 0] ** 2 + Fx0[:, 1] ** 2 + Ftx1[:, 0] ** 2 + Ftx1[:, 1] ** 2)
 
 
+def middlebury_sampson(cfg: TrackerConfig) -> dict:
+    """Track the consecutive templeRing views; Sampson distances (px) of shared tracks to the calibrated geometry.
+
+    Run from the project root: `.venv/bin/python -c "import sys; sys.path.insert(0, 'tests'); import test_tracker
+    as t; from vio.config import TrackerConfig; print(t.summary(t.middlebury_sampson(TrackerConfig())))"`.
+    """
+    views, cam = _middlebury_views()
+    trk = FeatureTracker(cam, cfg)
+    errors, counts, common, prev = [], [], [], None
+    for k, (_, img, K, R, t) in enumerate(views):
+        tr = trk.track(Frame(k * 100_000_000, 0, img))
+        counts.append(tr.ids.size)
+        if prev is not None:
+            tr0, K0, R0, t0 = prev
+            _, i0, i1 = np.intersect1d(tr0.ids, tr.ids, return_indices=True)
+            common.append(i0.size)
+            R10 = R @ R0.T
+            t10 = t - R10 @ t0
+            F = np.linalg.inv(K).T @ skew(t10) @ R10 @ np.linalg.inv(K0)
+            errors.append(sampson_px(F, tr0.uv[i0], tr.uv[i1]))
+        prev = (tr, K, R, t)
+    e = np.concatenate(errors)
+    return {"pairs": len(errors), "min_tracks": min(counts), "min_common": min(common), "errors_px": e}
+
+
+def summary(stats: dict) -> dict:
+    """Printable summary: arrays become median / 99th percentile / max / fraction over 2 px."""
+    out = {k: v for k, v in stats.items() if not isinstance(v, np.ndarray)}
+    for k, v in stats.items():
+        if isinstance(v, np.ndarray):
+            out[k] = {
+                "n": v.size,
+                "median": round(float(np.median(v)), 3),
+                "p99": round(float(np.percentile(v, 99)), 3),
+                "max": round(float(v.max()), 2),
+                "frac_over_2px": round(float(np.mean(v > 2.0)), 4),
+            }
+    return out
+
+
 def test_middlebury_temple_tracks_satisfy_the_known_epipolar_geometry():
     """Views 7.7 deg apart around a real object: tracks agree with F from the calibrated K, R, t.
 
@@ -208,23 +248,9 @@ def test_middlebury_temple_tracks_satisfy_the_known_epipolar_geometry():
     0.64 px, 51-100 tracks shared by consecutive views. With `essential_method=none` (no epipolar check) the 99th
     percentile is 1.13 px, 0.3% exceed 2 px and the worst is 38 px.
     """
-    views, cam = _middlebury_views()
-    trk = FeatureTracker(cam, TrackerConfig())
-    errors, prev = [], None
-    for k, (_, img, K, R, t) in enumerate(views):
-        tr = trk.track(Frame(k * 100_000_000, 0, img))
-        assert tr.ids.size >= 100
-        if prev is not None:
-            tr0, K0, R0, t0 = prev
-            _, i0, i1 = np.intersect1d(tr0.ids, tr.ids, return_indices=True)
-            assert i0.size >= 40
-            R10 = R @ R0.T
-            t10 = t - R10 @ t0
-            F = np.linalg.inv(K).T @ skew(t10) @ R10 @ np.linalg.inv(K0)
-            errors.append(sampson_px(F, tr0.uv[i0], tr.uv[i1]))
-        prev = (tr, K, R, t)
-    e = np.concatenate(errors)
-    assert len(errors) == 18
+    stats = middlebury_sampson(TrackerConfig())
+    e = stats["errors_px"]
+    assert stats["pairs"] == 18 and stats["min_tracks"] >= 100 and stats["min_common"] >= 40
     assert np.median(e) < 0.2
     assert np.percentile(e, 99) < 1.0
     assert np.mean(e > 2.0) < 0.002 and e.max() < 5.0
@@ -236,7 +262,8 @@ def test_euroc_still_camera_gives_still_tracks():
     The camera itself rotates by about 0.17 deg in these frames (ground truth; ~1.4 px), so raw displacement is
     bounded loosely and the tight bounds are on the motion relative to the common image motion and on chaining
     (frame-to-frame tracking compared with tracking from the first frame directly).
-    Measured: all 150 tracks survive; median per-track max displacement 1.7 px; relative 0.41 px; chaining 0.015 px.
+    Measured: 98% of the first frame's tracks survive; median per-track max displacement 1.71 px; relative 0.42 px;
+    chaining 0.013 px.
     """
     from vio.capture import read_asl
 
@@ -292,31 +319,30 @@ def triangulate(cam_T_world: np.ndarray, xy: np.ndarray, iterations: int = 5) ->
     return X
 
 
-def test_orbit_tracks_triangulate_with_ground_truth_poses(sim_capture):
-    """Rendered orbit (3 s, 60 frames, 640x480, phone-like radtan lens): tracks are geometrically right.
+def orbit_reprojection(capture_root, cfg: TrackerConfig) -> dict:
+    """Track a simulated capture; triangulate every track seen >= 3 times from the ground-truth camera poses.
 
-    Each track seen in >= 3 frames is triangulated from the ground-truth camera poses (world_T_body of the capture's
-    ground truth composed with body_T_cam) and reprojected into every frame that saw it (distorted pixels).
-    A track's error is its RMS reprojection error. Measured: 150 tracks every frame, 546 tracks, median residual
-    0.17 px, 0.9% of tracks with RMS above 2 px (1.8% with their worst observation above 2 px; such tracks are on
-    the table top seen at a grazing angle). Without the NCC and lagged epipolar checks 5.4% exceed 2 px RMS.
+    Residuals are distorted-pixel reprojection errors. Run from the project root (after `vio simulate orbit --out
+    CAP --duration 3`): `.venv/bin/python -c "import sys; sys.path.insert(0, 'tests'); import test_tracker as t;
+    from vio.config import TrackerConfig; print(t.summary(t.orbit_reprojection('CAP', TrackerConfig())))"`.
     """
     from vio.capture import read_asl
 
-    cap = read_asl(sim_capture("orbit", duration_s=3.0))
+    cap = read_asl(capture_root)
     cam = cap.camera
-    trk = FeatureTracker(cam, TrackerConfig())
+    trk = FeatureTracker(cam, cfg)
+    counts = []
     obs: dict[int, list[tuple[int, np.ndarray]]] = {}
     for k, frame in enumerate(cap.frames()):
         tr = trk.track(frame)
-        assert tr.ids.size >= 80
+        counts.append(tr.ids.size)
         for i, uv in zip(tr.ids.tolist(), tr.uv, strict=True):
             obs.setdefault(i, []).append((k, uv))
     gt = cap.ground_truth
     idx = np.searchsorted(gt.t_ns, cap.frame_t_ns)
     assert np.array_equal(gt.t_ns[idx], cap.frame_t_ns), "ground truth must be sampled at the frame times"
     cam_T_world = np.stack([np.linalg.inv(gt.world_T_body(int(i)) @ cam.body_T_cam) for i in idx])
-    residuals, track_rms = [], []
+    residuals, track_rms, track_max = [], [], []
     for lst in obs.values():
         if len(lst) < 3:
             continue
@@ -326,11 +352,33 @@ def test_orbit_tracks_triangulate_with_ground_truth_poses(sim_capture):
         p_cam = X @ cam_T_world[ks, :3, :3].transpose(0, 2, 1) + cam_T_world[ks, :3, 3]
         if np.any(p_cam[:, 2] <= 0):
             track_rms.append(np.inf)
+            track_max.append(np.inf)
             continue
         r = np.linalg.norm(cam.project(p_cam) - uv, axis=1)
         residuals.append(r)
         track_rms.append(float(np.sqrt(np.mean(r**2))))
-    r = np.concatenate(residuals)
-    assert len(track_rms) >= 300
-    assert np.median(r) < 0.5
-    assert np.mean(np.asarray(track_rms) > 2.0) < 0.05
+        track_max.append(float(r.max()))
+    return {
+        "min_tracks": min(counts),
+        "tracks": len(track_rms),
+        "residuals_px": np.concatenate(residuals),
+        "track_rms_px": np.asarray(track_rms),
+        "track_max_px": np.asarray(track_max),
+    }
+
+
+def test_orbit_tracks_triangulate_with_ground_truth_poses(sim_capture):
+    """Rendered orbit (3 s, 60 frames, 640x480, phone-like radtan lens): tracks are geometrically right.
+
+    Each track seen in >= 3 frames is triangulated from the ground-truth camera poses (world_T_body of the capture's
+    ground truth composed with body_T_cam) and reprojected into every frame that saw it (distorted pixels).
+    A track's error is its RMS reprojection error. Measured: 150 tracks every frame, 546 tracks, median residual
+    0.17 px, 0.9% of tracks with RMS above 2 px (1.8% with their worst observation above 2 px; such tracks are on
+    the table top seen at a grazing angle). Without the NCC and lagged epipolar checks: 4.5% (10.6% by worst
+    observation).
+    """
+    stats = orbit_reprojection(sim_capture("orbit", duration_s=3.0), TrackerConfig())
+    assert stats["min_tracks"] >= 80
+    assert stats["tracks"] >= 300
+    assert np.median(stats["residuals_px"]) < 0.5
+    assert np.mean(stats["track_rms_px"] > 2.0) < 0.05

@@ -100,11 +100,12 @@ def track_capture(capture_path: str | os.PathLike[str], out_csv: str | os.PathLi
         "stats": dict(tracker.stats),
     }
     log.info(
-        "tracked %d frames at %.1f fps (%.1fx real time), %.1f tracks per frame -> %s",
+        "tracked %d frames at %.1f fps (%.1fx real time), %.1f tracks per frame -> %s; ms per frame: %s",
         summary["frames"],
         summary["fps"],
         summary["realtime_factor"],
         summary["mean_tracks_per_frame"],
         out_csv,
+        ", ".join(f"{k} {1000 * v / summary['frames']:.2f}" for k, v in timings.items()),
     )
     return summary
