@@ -255,6 +255,20 @@ def test_serve_binds_only_loopback(sim_capture):
     assert viewer.process.poll() is not None
 
 
+def test_web_server_stops_with_the_process():
+    code = "from vio.viz import make_rerun_sink; s = make_rerun_sink(serve=True); s.close(); print(s.viewer.pid)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    pid = int(res.stdout.split()[-1])
+    psutil = pytest.importorskip("psutil")
+    deadline = time.monotonic() + 10
+    while (
+        psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline
+    ):
+        time.sleep(0.2)
+    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE  # no orphan server
+
+
 def test_spawn_without_display_is_one_clear_error(monkeypatch, tmp_path):
     from vio.errors import VioError
     from vio.viz import make_rerun_sink

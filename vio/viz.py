@@ -9,6 +9,8 @@ biases and solver statistics. Frames: world z-up; camera OpenCV; world_T_cam = w
 from __future__ import annotations
 
 import logging
+import sys
+import time
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
@@ -206,12 +208,20 @@ class RerunSink:
             self._rrd_tmp.replace(self._rrd)
             log.info("rerun recording saved: %s (open with: rerun %s)", self._rrd, self._rrd)
         if self.viewer is not None and self.viewer.kind == "web":
-            log.info(
-                "the web viewer keeps serving this run at %s (rerun server pid %d; stop it with: kill %d)",
-                self.viewer.url,
-                self.viewer.pid,
-                self.viewer.pid,
-            )
+            self._serve_until_interrupted()
+
+    def _serve_until_interrupted(self) -> None:
+        """At an interactive terminal where the user can see the log, keep serving the finished run until Ctrl-C.
+        Otherwise return at once: the server then stops when this process exits (or with `viewer.stop()`)."""
+        if not (sys.stdin.isatty() and log.isEnabledFor(logging.INFO)) or self.viewer.process.poll() is not None:
+            return
+        log.info("run finished; still serving it at %s - press Ctrl-C to stop", self.viewer.url)
+        try:
+            while self.viewer.process.poll() is None:
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            pass
+        self.viewer.stop()
 
 
 def make_rerun_sink(
@@ -219,8 +229,9 @@ def make_rerun_sink(
 ) -> RerunSink:
     """A sink logging to a .rrd file, a loopback web viewer (`serve`, `port` 0: chosen) and/or a native viewer.
 
-    `serve` starts `rerun --serve-web` bound to 127.0.0.1 only and logs (INFO) the URL to open in a browser; it
-    keeps serving after the run (see `RerunSink.viewer`). `spawn` starts the native viewer (needs a display); with
+    `serve` starts `rerun --serve-web` bound to 127.0.0.1 only and logs (INFO) the URL to open in a browser; after
+    `close()` it keeps serving until Ctrl-C at an interactive terminal showing INFO logs, else until the process
+    exits. `spawn` starts the native viewer (needs a display); with
     both, `serve` wins. The .rrd is written to a temporary file beside `rrd` and renamed in `close()`.
     """
     rec = rr.RecordingStream(bp.APP_ID, send_properties=False)

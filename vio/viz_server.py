@@ -6,6 +6,7 @@ binary shipped with rerun-sdk (`rerun --serve-web --bind 127.0.0.1`), and our re
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import importlib.util
 import logging
@@ -103,8 +104,8 @@ def _wait_listening(proc: subprocess.Popen, port: int, log_path: Path) -> None:
 def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
     """Start `rerun --serve-web` (kind "web") or the native viewer (kind "native"), listening on 127.0.0.1 only.
 
-    `web_port` 0 picks a free port. The process runs in its own session so that it outlives `vio run` and the
-    user can still look at the finished run; stop it with `ViewerProcess.stop()` or `kill <pid>`.
+    `web_port` 0 picks a free port. The process runs in its own session (Ctrl-C reaches only us); a web server is
+    stopped when this Python process exits, a native viewer is left for the user to close.
     """
     grpc_port = free_loopback_port()
     args = [rerun_executable(), "--bind", LOOPBACK, "--port", str(grpc_port)]
@@ -130,5 +131,7 @@ def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
     else:  # a native viewer listens before it opens its window, which is what fails without a usable display
         time.sleep(NATIVE_SETTLE_S)
         _wait_listening(proc, grpc_port, viewer.log_path)
+    if kind == "web":  # the server lives as long as this process; a native viewer window is the user's to close
+        atexit.register(viewer.stop)
     log.debug("rerun %s viewer pid %d: %s", kind, proc.pid, " ".join(args))
     return viewer
