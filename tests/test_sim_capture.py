@@ -154,3 +154,41 @@ def test_scenario_definitions_match_the_builtins(tmp_path):
     bad.write_text("scenario: orbit\nmotion:\n  ring_seconds: 3\n")
     with pytest.raises(SimulationError, match="bad.yaml: unknown motion key"):
         load_scenario(bad)
+
+
+@pytest.mark.parametrize("name", ["orbit", "figure8", "room"])
+def test_camera_stays_in_free_space(name):
+    """The camera never enters the table, the cube or furniture, and keeps 0.3 m from the walls."""
+    sc = load_scenario(name)
+    p, R = sc.trajectory.pose(np.arange(0.0, sc.duration_s, 0.01))
+    p_cam = p + R @ sc.camera.body_T_cam[:3, 3]
+    assert np.all(p_cam > sc.scene.room.lo + 0.3) and np.all(p_cam < sc.scene.room.hi - 0.3)
+    for box in sc.scene.solids:
+        outside = np.maximum(np.maximum(box.lo - p_cam, p_cam - box.hi), 0.0)
+        assert np.linalg.norm(outside, axis=1).min() > 0.01, box.name
+
+
+def test_real_euroc_ground_truth_drives_the_simulator():
+    """EuRoC V1_01's ground truth as the scenario: the simulated ideal IMU matches the real one (frames, signs)."""
+    from scipy.ndimage import uniform_filter1d
+
+    from tests.conftest import shared_path
+    from vio.sim.imu import IMU_GRADES, simulate_imu
+
+    root = shared_path("euroc_v1_01")
+    gt_csv = root / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    sc = load_scenario(gt_csv, duration_s=30.0)
+    sim, gt = simulate_imu(sc.trajectory, sc.t0_ns, 30.0, 200.0, IMU_GRADES["ideal"], np.random.default_rng(0))
+    real = read_asl(root)
+    inside = (real.ground_truth.t_ns >= gt.t_ns[0]) & (real.ground_truth.t_ns <= gt.t_ns[-1])
+    p_sim = np.column_stack([np.interp(real.ground_truth.t_ns[inside], gt.t_ns, gt.p_world[:, k]) for k in range(3)])
+    assert np.abs(p_sim - real.ground_truth.p_world[inside]).max() < 5e-3  # the spline follows the recording
+    k = np.searchsorted(real.imu.t_ns, gt.t_ns).clip(0, len(real.imu) - 1)
+    ok = np.abs(real.imu.t_ns[k] - gt.t_ns) < 3_000_000
+    b = np.searchsorted(real.ground_truth.t_ns, gt.t_ns[ok]).clip(0, len(real.ground_truth) - 1)
+    gyro_real = real.imu.gyro[k[ok]] - real.ground_truth.b_w[b]
+    acc_real = real.imu.acc[k[ok]] - real.ground_truth.b_a[b]
+    # Averaged over 0.2 s (the drone's vibration is not in the smoothed ground truth) they agree closely.
+    smooth = lambda x: uniform_filter1d(x, 40, axis=0)  # noqa: E731
+    assert np.sqrt(np.mean((smooth(gyro_real) - smooth(sim.gyro[ok])) ** 2)) < 0.02  # rad/s
+    assert np.sqrt(np.mean((smooth(acc_real) - smooth(sim.acc[ok])) ** 2)) < 0.3  # m/s^2
