@@ -44,7 +44,7 @@ _ESSENTIAL_METHODS = {
     "none": None,
 }
 _MIN_POINTS_ESSENTIAL = 8  # fewer correspondences than this: no geometric check
-_KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 0.001)
+_KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 TIMING_SECTIONS = ("klt", "fb_check", "ncc", "ransac", "detect")
 
 
@@ -57,7 +57,7 @@ def to_gray(image: np.ndarray) -> np.ndarray:
         return cv2.cvtColor(image.astype(np.uint8, copy=False), code)
     if image.ndim == 3 and image.shape[2] == 1:
         return image[:, :, 0].astype(np.uint8, copy=False)
-    raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {image.shape}")
+    raise CaptureError(f"frame image must be (H, W) or (H, W, 3|4), got shape {image.shape}")
 
 
 class FeatureTracker:
