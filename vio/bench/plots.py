@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vio.atomic import write_bytes  # noqa: E402
-from vio.bench.report import _method_rank  # noqa: E402
+from vio.bench.report import _method_rank, headline_key  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -113,13 +113,13 @@ def plot_error_distribution(rows: list[dict[str, Any]], path: Path) -> None:
         methods = sorted({r["method"] for r in rows if r["imu"] == imu}, key=_method_rank)
         data, labels = [], []
         for m in methods:
-            key = "ate_sim3_m" if m == "vision_only" else "ate_se3_m"
+            key = headline_key(m)
             vals = [r[key] for r in rows if r["imu"] == imu and r["method"] == m and r.get(key) is not None]
             if vals:
                 data.append(vals)
                 labels.append(f"{m}\n(Sim3)" if m == "vision_only" else m)
         if data:
-            box = ax.boxplot(data, patch_artist=True, widths=0.6)
+            box = ax.boxplot(data, patch_artist=True, widths=0.6, showfliers=False)
             ax.set_xticks(range(1, len(labels) + 1), labels)
             for patch, lab in zip(box["boxes"], labels, strict=True):
                 patch.set_facecolor(_color(lab.split("\n")[0]))

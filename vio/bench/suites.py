@@ -76,9 +76,9 @@ def get_suite(name: str) -> Suite:
     if name == "tiny":
         return Suite("tiny", (Case("orbit", 0, "phone", 4.0),), (IMU_ONLY, VIO), "test-only", plots=True)
     if name == "quick":
-        cases = _grid(["orbit", "figure8", "room"], ["phone"], [0], 20.0)
-        cases += (Case("orbit", 1, "phone", 20.0), Case("orbit", 0, "tactical", 20.0))
-        return Suite("quick", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY), "5 captures of 20 s")
+        cases = _grid(["orbit", "figure8", "room"], ["phone"], [0], 15.0)
+        cases += (Case("orbit", 1, "phone", 15.0), Case("orbit", 0, "tactical", 15.0))
+        return Suite("quick", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY), "5 captures of 15 s")
     if name == "full":
         cases = _grid(["orbit", "figure8", "room"], ["phone", "tactical"], [0, 1, 2, 3, 4], 60.0)
         if EUROC_GT_FILE.exists():
