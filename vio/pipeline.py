@@ -103,6 +103,7 @@ def run_capture(
 ) -> dict[str, Any]:
     """Estimate the whole capture; writes the four output files into `out` and returns the run summary."""
     t_start = time.perf_counter()
+    cpu_start = time.process_time()
     cap = open_any(capture, calib)
     if cap.camera is None or cap.imu is None or cap.imu_calib is None:
         raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
@@ -177,6 +178,7 @@ def run_capture(
         "span_s": span_s,
         "wall_time_s": wall,
         "realtime_factor": span_s / wall if wall > 0 else 0.0,
+        "cpu_time_s": time.process_time() - cpu_start,  # this process only (the machine may be shared)
         "keyframe_ms": {
             "median": float(np.median(tm)) if tm.size else 0.0,
             "p95": float(np.percentile(tm, 95)) if tm.size else 0.0,
