@@ -32,8 +32,8 @@ def occupancy_mask(shape: tuple[int, int], uv: np.ndarray, radius_px: float, bor
     if h > 2 * b and w > 2 * b:
         mask[b : h - b, b : w - b] = 255
     r = max(int(round(radius_px)), 1)
-    for x, y in np.asarray(uv, np.float64).reshape(-1, 2):
-        cv2.circle(mask, (int(round(x)), int(round(y))), r, 0, -1)
+    for x, y in np.rint(np.asarray(uv, np.float64).reshape(-1, 2)).astype(np.int64).tolist():
+        cv2.circle(mask, (x, y), r, 0, -1)
     return mask
 
 
@@ -75,9 +75,11 @@ def detect_corners(
     mask = occupancy_mask(shape, existing_uv, cfg.min_distance_px, cfg.border_px)
     local_max = eig >= cv2.dilate(eig, np.ones((3, 3), np.uint8))
     cand = local_max & (eig > cfg.quality_level * peak) & (mask > 0)
-    ys, xs = np.nonzero(cand)
-    if xs.size == 0:
+    pts = cv2.findNonZero(cand.view(np.uint8))  # much faster than np.nonzero on a full frame
+    if pts is None:
         return empty
+    pts = pts.reshape(-1, 2)
+    xs, ys = pts[:, 0], pts[:, 1]
     resp = eig[ys, xs]
     order = np.argsort(-resp, kind="stable")[:_MAX_CANDIDATES]
     xs, ys, resp = xs[order], ys[order], resp[order]

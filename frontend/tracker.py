@@ -6,7 +6,7 @@ Pixel coordinates are in the *distorted* image (what the camera delivered), x ri
 2. the patch around the new position must correlate (zero-mean NCC, gain/offset invariant) at least `min_ncc`
    with the patch around the old one: this drops tracks whose appearance changes quickly (strong perspective
    change, e.g. a surface seen at a grazing angle close to the camera), where translation-only KLT drifts;
-3. an essential matrix is fitted with OpenCV's USAC (USAC_ACCURATE by default) to the undistorted normalized bearings
+3. an essential matrix is fitted with OpenCV's USAC (MAGSAC++ by default) to the undistorted normalized bearings
    (`CameraCalib.undistort_to_normalized`), the pixel threshold divided by the mean focal length, first against
    the previous frame and then against the frame `essential_lag_frames` back (a wider baseline exposes slow
    drift that no single frame step shows). When the median flow is below `essential_min_flow_px` the views have

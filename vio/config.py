@@ -29,10 +29,10 @@ class TrackerConfig:
     fb_threshold_px: float = 0.5  # forward-backward consistency threshold, px
     min_ncc: float = 0.95  # a track whose patch correlates less than this with the previous frame's is dropped
     ncc_radius_px: int = 5  # half-size of the patch compared by min_ncc, px
-    ransac_threshold_px: float = 0.5  # essential-matrix inlier threshold, in pixels at the focal length
+    ransac_threshold_px: float = 0.3  # essential-matrix inlier threshold, px at the focal length (method-specific)
     border_px: int = 8  # features closer than this to the border are dropped
     subpix_window: int = 3  # half-size of the cornerSubPix search window for new corners (0: off), px
-    essential_method: str = "usac_accurate"  # usac_accurate | usac_magsac | usac_default | ransac | lmeds | none
+    essential_method: str = "usac_magsac"  # usac_magsac | usac_accurate | usac_default | ransac | lmeds | none
     essential_min_flow_px: float = 1.0  # skip the essential-matrix check below this median flow, px
     essential_lag_frames: int = 5  # also check against the frame this many frames back (slow drift); 0/1: off
 
