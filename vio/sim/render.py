@@ -10,11 +10,18 @@ Seeded Gaussian pixel noise (1.5 DN) is added per frame.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
 
 from vio.capture import encode_png
+from vio.records import CameraCalib
 from vio.sim.scene import Scene
+
+if TYPE_CHECKING:
+    from vio.sim.api import Scenario
 from vio.sim.textures import build_atlas, scene_textures
 
 NOISE_DN = 1.5  # pixel noise standard deviation, grey levels
@@ -26,7 +33,7 @@ _SUB_DY = ((_ROOKS + 0.5) / 8.0 - 0.5).astype(np.float32)
 _TINY = np.float32(1e-12)
 
 
-def _rays(cam, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def _rays(cam: CameraCalib, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Undistorted camera-frame rays (x, y, 1) through distorted pixel coordinates: (2, h, w) x, y float32."""
     uv = np.column_stack([u.ravel(), v.ravel()])
     xy = cam.undistort_to_normalized(uv, iterations=4)
@@ -61,7 +68,7 @@ def _atlas(scene: Scene):
 class Renderer:
     """Renders grayscale frames of a scenario's scene from camera poses (world_T_cam)."""
 
-    def __init__(self, scene: Scene, camera) -> None:
+    def __init__(self, scene: Scene, camera: CameraCalib) -> None:
         self.scene = scene
         self.camera = camera
         h, w = camera.height, camera.width
@@ -255,7 +262,7 @@ class Renderer:
         return np.clip(np.rint(val), 0, 255).astype(np.uint8)
 
 
-def camera_poses(sc, t_ns: np.ndarray) -> np.ndarray:
+def camera_poses(sc: Scenario, t_ns: np.ndarray) -> np.ndarray:
     """(F, 4, 4) world_T_cam of scenario `sc` at frame times t_ns."""
     p, R = sc.trajectory.pose((t_ns - sc.t0_ns).astype(np.float64) * 1e-9)
     world_T_body = np.tile(np.eye(4), (len(t_ns), 1, 1))
@@ -264,7 +271,9 @@ def camera_poses(sc, t_ns: np.ndarray) -> np.ndarray:
     return world_T_body @ sc.camera.body_T_cam
 
 
-def render_pngs(sc, t_ns: np.ndarray, image_seed: np.random.SeedSequence, workers: int | None = None):
+def render_pngs(
+    sc: Scenario, t_ns: np.ndarray, image_seed: np.random.SeedSequence, workers: int | None = None
+) -> Iterator[bytes]:
     """Yield the PNG bytes of each frame in order; frame i's noise comes from image_seed.spawn(F)[i].
 
     Frames are rendered by `workers` processes (default 2 when there are 40+ frames, see `vio.sim.workers`);

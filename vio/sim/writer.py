@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -12,10 +13,13 @@ from vio.capture import AslWriter
 from vio.records import GroundTruth, ImuSeries
 from vio.sim.stl import write_stl
 
+if TYPE_CHECKING:
+    from vio.sim.api import Scenario
+
 log = logging.getLogger(__name__)
 
 
-def scene_yaml_text(sc) -> str:
+def scene_yaml_text(sc: Scenario) -> str:
     """scene/scene.yaml: what was simulated (scenario, seed, IMU grade, object size and pose, room bounds)."""
     obj = sc.scene.object_box
     meta = {
@@ -48,7 +52,7 @@ def scene_yaml_text(sc) -> str:
 
 def write_capture(
     writer: AslWriter,
-    sc,
+    sc: Scenario,
     imu: ImuSeries,
     gt: GroundTruth,
     images: bool,
