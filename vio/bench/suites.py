@@ -78,7 +78,7 @@ def get_suite(name: str) -> Suite:
     if name == "quick":
         cases = _grid(["orbit", "figure8", "room"], ["phone"], [0], 15.0)
         cases += (Case("orbit", 1, "phone", 15.0), Case("orbit", 0, "tactical", 15.0))
-        return Suite("quick", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY), "5 captures of 15 s")
+        return Suite("quick", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY, FIXED_LAG), "5 captures of 15 s")
     if name == "full":
         cases = _grid(["orbit", "figure8", "room"], ["phone", "tactical"], [0, 1, 2, 3, 4], 60.0)
         if EUROC_GT_FILE.exists():
