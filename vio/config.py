@@ -62,7 +62,7 @@ class BackendConfig:
     min_parallax_deg: float = 2.0  # ... and this much ray parallax, deg
     max_reprojection_px: float = 3.0  # admission and re-check threshold, px
     landmark_prior_sigma_m: float = 5.0  # weak prior on each landmark at its triangulated position, m
-    max_track_keyframes: int = 10  # a track becomes a new landmark after this many keyframe views (0: never)
+    max_track_keyframes: int = 0  # a track becomes a new landmark after this many keyframe views (0: only on drift)
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 10  # relinearize every 10th update (measured: 2x less CPU, same accuracy)
     factorization: str = "CHOLESKY"  # iSAM2: CHOLESKY (25% faster) | QR (survives long IMU-only stretches)

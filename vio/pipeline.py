@@ -174,6 +174,7 @@ def run_capture(
         "num_landmarks": int(len(ids)),
         "initialisation": est.init_kind,
         "num_zero_velocity_updates": est.num_still,
+        "num_track_splits": est.num_splits,
         "num_position_factors": est.anchor.num_factors if est.anchor is not None else 0,
         "span_s": span_s,
         "wall_time_s": wall,
