@@ -255,18 +255,27 @@ def test_serve_binds_only_loopback(sim_capture):
     assert viewer.process.poll() is not None
 
 
-def test_web_server_stops_with_the_process():
-    code = "from vio.viz import make_rerun_sink; s = make_rerun_sink(serve=True); s.close(); print(s.viewer.pid)"
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert res.returncode == 0, res.stderr
-    pid = int(res.stdout.split()[-1])
+@pytest.mark.parametrize("end", ["exit", "sigkill"])
+def test_web_server_stops_with_the_process(end):
     psutil = pytest.importorskip("psutil")
+    if end == "sigkill" and not sys.platform.startswith("linux"):
+        pytest.skip("dying with the parent relies on Linux prctl(PR_SET_PDEATHSIG)")
+    code = (
+        "import os, signal, sys; from vio.viz import make_rerun_sink; s = make_rerun_sink(serve=True); "
+        "print(s.viewer.pid, flush=True); " + ("s.close()" if end == "exit" else "os.kill(os.getpid(), signal.SIGKILL)")
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    pid = int(res.stdout.split()[-1])
+
+    def alive() -> bool:
+        return psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+
     deadline = time.monotonic() + 10
-    while (
-        psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline
-    ):
+    while alive() and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE  # no orphan server
+    if alive():  # clean up the server this test started before failing
+        psutil.Process(pid).terminate()
+        pytest.fail(f"rerun server {pid} outlived its process ({end})")
 
 
 def test_spawn_without_display_is_one_clear_error(monkeypatch, tmp_path):

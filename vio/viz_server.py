@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import ctypes
 import importlib.util
 import logging
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -29,6 +31,7 @@ log = logging.getLogger(__name__)
 LOOPBACK = "127.0.0.1"
 STARTUP_TIMEOUT_S = 20.0
 NATIVE_SETTLE_S = 2.0
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 ANSI_ESCAPE = re.compile(r"\x1b\[[0-9;]*m")
 
 
@@ -80,6 +83,12 @@ def rerun_executable() -> str:
     return found
 
 
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    """Linux: have the kernel send SIGTERM to the viewer when the process that started it dies, however it dies."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 def free_loopback_port() -> int:
     """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -105,7 +114,8 @@ def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
     """Start `rerun --serve-web` (kind "web") or the native viewer (kind "native"), listening on 127.0.0.1 only.
 
     `web_port` 0 picks a free port. The process runs in its own session (Ctrl-C reaches only us); a web server is
-    stopped when this Python process exits, a native viewer is left for the user to close.
+    stopped when this Python process exits (atexit, and on Linux also when it is killed), a native viewer is left
+    for the user to close.
     """
     grpc_port = free_loopback_port()
     args = [rerun_executable(), "--bind", LOOPBACK, "--port", str(grpc_port)]
@@ -122,7 +132,12 @@ def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
     fd, name = tempfile.mkstemp(prefix=f"vio_rerun_{kind}_", suffix=".log")
     with os.fdopen(fd, "wb") as out:
         proc = subprocess.Popen(
-            args, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True
+            args,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            preexec_fn=_die_with_parent if kind == "web" and sys.platform.startswith("linux") else None,  # noqa: PLW1509
         )
     viewer = ViewerProcess(kind, proc, grpc_port, http_port, Path(name))
     _wait_listening(proc, grpc_port, viewer.log_path)
