@@ -117,3 +117,16 @@ def test_solver_failure_is_recovered(data, monkeypatch):
     assert len(est.recoveries) == 1 and est.recoveries[0]["reason"] == "injected failure"
     assert len(est.states()) >= len(data[5]) - 12
     assert all(np.isfinite(s.world_T_body).all() for s in est.states())
+
+
+def test_tracking_loss_does_not_end_the_run(data):
+    cam, imu, cal, t_kf, tracks, gt = data
+    lost = [
+        FeatureTracks(tr.t_ns, tr.ids[:0], tr.uv[:0]) if 30 <= i < 38 else tr  # 0.8 s without any feature
+        for i, tr in enumerate(tracks)
+    ]
+    est = run_estimator((cam, imu, cal, t_kf, lost, gt))
+    states = est.states()
+    assert len(states) >= len(gt) - 12 and all(np.isfinite(s.world_T_body).all() for s in states)
+    idx = [int(np.searchsorted(t_kf, s.t_ns)) for s in states]
+    assert ate_se3(gt[idx, :3, 3], np.array([s.world_T_body[:3, 3] for s in states])) < 0.05
