@@ -46,6 +46,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from vio.pipeline import run_capture
 
     cfg = load_config(args.config, args.overrides)
+    if args.serve:  # the viewer's address (and serving until Ctrl-C) must reach the user
+        logging.getLogger("vio.viz").setLevel(logging.INFO)
     run_capture(
         args.capture,
         args.out,
