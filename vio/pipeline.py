@@ -192,13 +192,13 @@ def run_capture(
         "config": cfg.to_dict(),
     }
     outputs.write_run_json(out / "run.json", summary)
+    if sink is not None:
+        sink.close()
     if not states:
         raise EstimationError(f"{cap.root}: the estimator never initialised ({n_kf} keyframes); see {out / 'run.json'}")
     outputs.write_trajectory(out / "trajectory.tum", states)
     outputs.write_states(out / "states.csv", states)
     outputs.write_landmarks_ply(out / "landmarks.ply", pts, rgb, nobs)
-    if sink is not None:
-        sink.close()
     log.info(
         "%d keyframes, %d landmarks, %.1f s wall (%.2fx real time), %d recoveries",
         len(states),
