@@ -11,6 +11,7 @@ def test_defaults_and_overrides(tmp_path):
     assert cfg.tracker.max_features == 200
     assert cfg.backend.smoother == "fixed_lag"
     assert cfg.backend.lag_s == 2.0 and isinstance(cfg.backend.lag_s, float)
+    assert load_config(None, ["imu.integration_sigma=1e-3"]).imu.integration_sigma == 0.001
     assert Config().tracker.max_features == 150
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -80,6 +81,7 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path):
         raise RuntimeError("boom")
     assert target.read_text() == "complete\n"
     assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+    assert target.stat().st_mode & 0o044 == 0o044 or (os.umask(0o022) & 0o044)  # readable by others
 
 
 def test_backwards_timestamp_names_file_and_row(tmp_path):

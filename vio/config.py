@@ -95,14 +95,19 @@ class Config:
 
 
 def _coerce(section: str, key: str, kind: Any, value: Any) -> Any:
-    """Check a value against the dataclass field type (ints may become floats, nothing else converts)."""
+    """Check a value against the dataclass field type (ints and numeric strings may become floats)."""
+    name = kind if isinstance(kind, str) else getattr(kind, "__name__", str(kind))
+    if name == "float" and isinstance(value, str):  # YAML 1.1 reads `1e-3` as a string
+        try:
+            value = float(value)
+        except ValueError:
+            pass  # reported below as a type error
     ok = {
         "int": isinstance(value, int) and not isinstance(value, bool),
         "float": isinstance(value, (int, float)) and not isinstance(value, bool),
         "bool": isinstance(value, bool),
         "str": isinstance(value, str),
     }
-    name = kind if isinstance(kind, str) else getattr(kind, "__name__", str(kind))
     if name not in ok:
         return value
     if not ok[name]:
