@@ -219,9 +219,13 @@ class VioEstimator(WindowInitialiser):
     def _output_T(self) -> np.ndarray | None:  # noqa: N802
         return None if self.anchor is None else self.anchor.known_T_est
 
-    def landmarks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(M,) track ids, (M, 3) world points (m), (M,) number of projection factors."""
-        self._sync()
+    def landmarks(self, sync: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(M,) track ids, (M, 3) world points (m), (M,) number of projection factors.
+
+        With `sync=False` the latest per-keyframe values are used as they are (cheap; for live display).
+        """
+        if sync:
+            self._sync()
         ids = [j for j in sorted(self.num_obs) if self.values.exists(L(j))]
         pts = np.array([self.values.atPoint3(L(j)) for j in ids]).reshape(-1, 3)
         T = self._output_T()

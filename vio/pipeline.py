@@ -8,6 +8,7 @@ A tracking loss or a solver exception does not end the run; they are counted and
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import sys
@@ -152,9 +153,11 @@ def run_capture(
                 log.warning(msg)
                 errors.append(msg)
                 produced = []
-            if sink is not None:
+            if sink is not None and produced:
+                lm_ids, lm_pts, _ = est.landmarks(sync=False)
+                produced[-1] = dataclasses.replace(produced[-1], landmark_ids=lm_ids, landmarks_world=lm_pts)
                 for s in produced:
-                    sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(est.num_obs)})
+                    sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(lm_ids)})
         bar.update(n_done, n_kf)
     bar.close()
     refine_info = est.finish(refine)
