@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from vio.config import load_config
@@ -41,3 +42,5 @@ def test_landmark_colours_come_from_the_images(orbit_run):
     assert len(body) == summary["num_landmarks"] and len(grey) > 10  # sampled pixels, not one default colour
     run = json.loads((out / "run.json").read_text())
     assert run["refine"]["refined"] is True
+    online = read_trajectory(out / "trajectory_online.tum")  # the online answer is kept beside the refined one
+    assert np.array_equal(online.t_ns, read_trajectory(out / "trajectory.tum").t_ns)

@@ -160,6 +160,7 @@ def run_capture(
                     sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(lm_ids)})
         bar.update(n_done, n_kf)
     bar.close()
+    online_states = est.states() if refine else []  # kept beside the refined answer, for comparison
     refine_info = est.finish(refine)
     states = est.states()
     ids, pts, nobs = est.landmarks()
@@ -200,6 +201,8 @@ def run_capture(
     if not states:
         raise EstimationError(f"{cap.root}: the estimator never initialised ({n_kf} keyframes); see {out / 'run.json'}")
     outputs.write_trajectory(out / "trajectory.tum", states)
+    if online_states:
+        outputs.write_trajectory(out / "trajectory_online.tum", online_states)
     outputs.write_states(out / "states.csv", states)
     outputs.write_landmarks_ply(out / "landmarks.ply", pts, rgb, nobs)
     log.info(

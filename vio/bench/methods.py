@@ -64,31 +64,16 @@ def _latencies(run: dict) -> np.ndarray | None:
 def _pipeline(capture_dir: Path, out: Path, overrides: tuple[str, ...], refine: bool) -> tuple[dict, float]:
     """One `run_capture` into `out` with the progress bar off; returns (run.json, wall time s).
 
-    With `refine`, the online estimate (the smoother's estimate of every keyframe just before the batch
-    refinement replaces it) is also written to `out/trajectory_online.tum`: the estimator's `finish` is wrapped,
-    in this process only, to save `states()` first. The pipeline itself writes only the refined trajectory.
+    With `refine`, the pipeline writes the online estimate (the smoother's estimate of every keyframe just before
+    the batch refinement replaces it) to `out/trajectory_online.tum` beside the refined `trajectory.tum`.
     """
-    from unittest import mock
-
-    from backend.estimator import VioEstimator
-    from vio import outputs
     from vio.config import load_config
     from vio.pipeline import run_capture
 
     cfg = load_config(None, ["run.progress=false", *overrides])
-    original_finish = VioEstimator.finish
-
-    def finish_keeping_online(self: VioEstimator, refine: bool = False) -> dict:
-        if refine and self.initialised:
-            states = self.states()
-            if states:
-                outputs.write_trajectory(out / "trajectory_online.tum", states)
-        return original_finish(self, refine)
-
     (out / "trajectory_online.tum").unlink(missing_ok=True)
     t0 = time.perf_counter()
-    with mock.patch.object(VioEstimator, "finish", finish_keeping_online):
-        run_capture(capture_dir, out, cfg, refine=refine)
+    run_capture(capture_dir, out, cfg, refine=refine)
     wall = time.perf_counter() - t0
     run = json.loads((out / "run.json").read_text(encoding="utf-8"))
     if run.get("status") != "ok":
@@ -110,7 +95,7 @@ def run_vio(
     `--refine`); its wall time excludes any refinement. The batch optimum is Levenberg-Marquardt over the same
     factor graph after the online pass. When the pipeline writes the online trajectory of a refined run apart
     (`trajectory_online.tum`), one run gives both; otherwise the online and the refined run are separate runs (same
-    deterministic frontend and graph) in `out/online` and `out`. `_pipeline` saves it, so one run is the rule.
+    deterministic frontend and graph) in `out/online` and `out`.
     """
     rows: list[MethodOutput] = []
     if not refine:
