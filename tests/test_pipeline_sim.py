@@ -44,3 +44,18 @@ def test_landmark_colours_come_from_the_images(orbit_run):
     assert run["refine"]["refined"] is True
     online = read_trajectory(out / "trajectory_online.tum")  # the online answer is kept beside the refined one
     assert np.array_equal(online.t_ns, read_trajectory(out / "trajectory.tum").t_ns)
+
+
+@pytest.mark.slow
+def test_sixty_second_orbit_keeps_metric_scale(sim_capture, tmp_path):
+    """Issue 5's synthetic target capture, whole: scale error < 0.5 %. ATE is guarded at 20 mm; the issue asks
+    for 5 mm, not reached yet (12.4 mm measured, docs/BENCHMARKS.md: a slow yaw drift without loop closure)."""
+    capture = sim_capture("orbit", 60.0)
+    summary = run_capture(capture, tmp_path, load_config(None, ["run.progress=false"]))
+    assert summary["status"] == "ok" and summary["span_s"] > 59.0
+    gt = read_trajectory(capture / "mav0" / "state_groundtruth_estimate0" / "data.csv")
+    est = read_trajectory(tmp_path / "trajectory.tum")
+    sim3 = evaluate(gt, est, align="sim3")
+    assert abs(sim3["scale"] - 1.0) < 0.005
+    assert sim3["coverage_s"] > 58.0
+    assert evaluate(gt, est, align="se3")["ate_rmse_m"] < 0.020
