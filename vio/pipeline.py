@@ -33,10 +33,6 @@ def open_any(capture: str | os.PathLike[str] | Capture, calib: str | None = None
     """A Capture object, or a path opened with the format detected."""
     if isinstance(capture, Capture):
         return capture
-    from vio.eqvio import is_eqvio_file, read_eqvio
-
-    if is_eqvio_file(capture):  # tracks, no images: read directly (the readers' validation decodes frame 0)
-        return read_eqvio(capture)
     from vio.readers import open_capture
 
     return open_capture(capture, calib=calib)
