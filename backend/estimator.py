@@ -26,6 +26,7 @@ from backend.keys import B, L, V, X
 from backend.landmarks import LandmarkBook
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
 from backend.startup import WindowInitialiser
+from backend.visual_only import VisualOnly
 from vio.config import BackendConfig
 from vio.records import CameraCalib, FeatureTracks, ImuSeries, StateEstimate
 
@@ -47,7 +48,7 @@ def _get(values: gtsam.Values, key: int) -> Any:
     return values.atPoint3(key)
 
 
-class VioEstimator(WindowInitialiser):
+class VioEstimator(WindowInitialiser, VisualOnly):
     """Tightly coupled visual-inertial smoothing. Feed keyframes with `add_keyframe`, then call `finish`."""
 
     def __init__(
@@ -114,6 +115,10 @@ class VioEstimator(WindowInitialiser):
         self.warnings.append(msg)
 
     def _state(self, k: int, solve_ms: float) -> StateEstimate:
+        if not self.cfg.use_imu:  # no velocity or bias keys
+            return StateEstimate(
+                k, self.t_ns[k], self._pose(k), np.zeros(3), np.zeros(3), np.zeros(3), solve_ms=solve_ms
+            )
         b = self.values.atConstantBias(B(k))
         return StateEstimate(
             k,
@@ -162,7 +167,7 @@ class VioEstimator(WindowInitialiser):
         k = 0 if self.last_k is None else self.last_k + 1
         self.t_ns[k] = int(t_ns)
         uv = fb.undistorted_px(self.camera, tracks.uv)
-        if self.last_k is not None:
+        if self.last_k is not None and self.cfg.use_imu:
             pre = self.preintegrate(self.t_ns[self.last_k], t_ns, self.bias)
             self.pims[k] = pre.pim
             if getattr(pre, "gap", False):
@@ -172,7 +177,7 @@ class VioEstimator(WindowInitialiser):
         self.book.observe(k, ids, uv)
         if not self.initialised:
             self.pending.append(k)
-            return self._try_initialise()
+            return self._try_initialise() if self.cfg.use_imu else self._vo_try_initialise()
         return [self._step(prev, k, ids)]
 
     def _segment_ids(self, track_ids: np.ndarray) -> np.ndarray:
@@ -244,30 +249,36 @@ class VioEstimator(WindowInitialiser):
 
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
         t0 = time.perf_counter()
-        pose_prev = self.values.atPose3(X(prev))
-        v_prev = self.values.atVector(V(prev))
-        pred = self.pims[k].predict(gtsam.NavState(pose_prev, v_prev), self.bias)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        values.insert(X(k), pred.pose())
-        values.insert(V(k), pred.velocity())
-        values.insert(B(k), self.bias)
-        self._set(X(k), pred.pose())
-        self._set(V(k), pred.velocity())
-        self._set(B(k), self.bias)
-        self._add(graph, fb.imu_factor(prev, k, self.pims[k]))
+        t_s = self.t_ns[k] * 1e-9
+        if self.cfg.use_imu:
+            pose_prev = self.values.atPose3(X(prev))
+            v_prev = self.values.atVector(V(prev))
+            nav = self.pims[k].predict(gtsam.NavState(pose_prev, v_prev), self.bias)
+            pred = nav.pose()
+            values.insert(V(k), nav.velocity())
+            values.insert(B(k), self.bias)
+            self._set(V(k), nav.velocity())
+            self._set(B(k), self.bias)
+            self._add(graph, fb.imu_factor(prev, k, self.pims[k]))
+            if self._is_still(prev, k, ids):
+                for f in fb.no_motion_factors(prev, k):
+                    self._add(graph, f)
+                self.num_still += 1
+            stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
+        else:
+            pred = gtsam.Pose3(self._vo_predict(prev, k, ids))
+            self._add(graph, self._vo_motion_prior(prev, k))
+            stamps = {X(k): t_s}
+        values.insert(X(k), pred)
+        self._set(X(k), pred)
         for f in self._position_factors(k):
             self._add(graph, f)
-        if self._is_still(prev, k, ids):
-            for f in fb.no_motion_factors(prev, k):
-                self._add(graph, f)
-            self.num_still += 1
-        t_s = self.t_ns[k] * 1e-9
-        stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
         poses = None
         for j in ids.tolist():
             tr = self.book.tracks[j]
             if tr.admitted:
-                if self.smoother.has(L(j)) and self._consistent(j, pred.pose().matrix(), tr.views[k]):
+                if self.smoother.has(L(j)) and self._consistent(j, pred.matrix(), tr.views[k]):
                     self._add_projection(graph, k, j, tr.views[k])
                     stamps[L(j)] = t_s
                 elif self.smoother.has(L(j)):
@@ -294,7 +305,8 @@ class VioEstimator(WindowInitialiser):
         except SolverFailure as exc:
             est = self._recover(prev, k, str(exc))
         self._absorb(est)
-        self.bias = self.values.atConstantBias(B(k))
+        if self.cfg.use_imu:
+            self.bias = self.values.atConstantBias(B(k))
         ms = (time.perf_counter() - t0) * 1e3
         self.timings_ms.append(ms)
         return self._state(k, ms)
@@ -338,14 +350,18 @@ class VioEstimator(WindowInitialiser):
         self.book.forget_before(prev)
         self.num_obs = {j: n for j, n in self.num_obs.items() if self.values.exists(L(j))}
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        bias = self.values.atConstantBias(B(prev))
         graph.add(
             gtsam.PriorFactorPose3(X(prev), self.values.atPose3(X(prev)), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3))
         )
-        graph.add(fb.velocity_prior(prev, self.values.atVector(V(prev)), 0.05))
-        graph.add(fb.bias_prior(prev, bias, 0.02, 1e-3))
-        graph.add(fb.imu_factor(prev, k, self.pims[k]))
-        for key in (X(prev), V(prev), B(prev), X(k), V(k), B(k)):
+        if self.cfg.use_imu:
+            graph.add(fb.velocity_prior(prev, self.values.atVector(V(prev)), 0.05))
+            graph.add(fb.bias_prior(prev, self.values.atConstantBias(B(prev)), 0.02, 1e-3))
+            graph.add(fb.imu_factor(prev, k, self.pims[k]))
+            keys = (X(prev), V(prev), B(prev), X(k), V(k), B(k))
+        else:
+            graph.add(self._vo_motion_prior(prev, k))
+            keys = (X(prev), X(k))
+        for key in keys:
             values.insert(key, _get(self.values, key))
         t_s = self.t_ns[k] * 1e-9
         try:

@@ -73,6 +73,7 @@ class BackendConfig:
     static_init_max_acc_std: float = 0.15  # std of 0.1 s accelerometer block means for a static start, m/s^2
     still_max_px: float = 0.5  # zero-velocity update when tracks move less than this (median) and the IMU rests, px
     still_window_s: float = 0.5  # IMU window of the at-rest test of the zero-velocity update, s
+    use_imu: bool = True  # false: projection factors only (backend/visual_only.py; scale unknown, Sim3 only)
 
 
 @dataclass(frozen=True)

@@ -116,17 +116,8 @@ def run_vio(
     return rows
 
 
-VISION_ONLY_INFLATION = 1000.0  # IMU noise x1000: the inertial factors keep 1e-6 of their information
-
-
 def run_vision_only(capture_dir: Path, out: Path, overrides: tuple[str, ...] = ()) -> list[MethodOutput]:
-    """The same frontend and graph without the IMU's information; scale is unobservable: scored after Sim3.
-
-    The pipeline has no IMU-free graph, so the inertial factors stay in it with their noise densities and random
-    walks inflated by VISION_ONLY_INFLATION (`imu.noise_inflation`): they still seed each new pose's initial
-    guess and the start-up initialisation, but carry a millionth of their information, so poses and scale are
-    determined by the projection factors (and drift like a monocular visual odometry's).
-    """
-    ov = (*overrides, f"imu.noise_inflation={VISION_ONLY_INFLATION:g}")
-    res = run_vio(capture_dir, out, "vision_only", ov, refine=False)
+    """The same frontend and graph without the IMU (`backend.use_imu=false`: projection factors only, two-view
+    start with unit baseline, PnP pose guesses); scale is unobservable, so it is scored after Sim3 alignment."""
+    res = run_vio(capture_dir, out, "vision_only", (*overrides, "backend.use_imu=false"), refine=False)
     return [MethodOutput(r.method, r.trajectory, r.wall_s, r.latencies_ms, "sim3", r.info) for r in res]
