@@ -33,18 +33,8 @@ class WindowInitialiser:
             return []
         t0 = time.perf_counter()
         graph, values = self._window_graph(ks, guess)
-        try:
-            values = batch_solve(graph, values)
-            self.smoother.update(graph, values, {key: 0.0 for key in values.keys()})
-        except (RuntimeError, SolverFailure) as exc:
-            self._warn(f"initialisation at keyframe {ks[-1]} failed ({first_line(exc)}); retrying later")
-            self.smoother.reset()
-            self.pending = ks[1:]
-            for j in list(self.num_obs):
-                self.book.tracks[j].admitted = False
-            self.num_obs.clear()
+        if not self._start_window(graph, values, ks, "initialisation"):
             return []
-        self._absorb(self.smoother.estimate())
         self.bias = self.values.atConstantBias(B(ks[-1]))
         self.initialised, self.init_kind = True, guess.kind
         ms = (time.perf_counter() - t0) * 1e3
@@ -52,6 +42,22 @@ class WindowInitialiser:
         log.info("initialised (%s start) with %d keyframes, %d landmarks", guess.kind, len(ks), len(self.num_obs))
         self.pending = []
         return [self._state(k, ms) for k in ks]
+
+    def _start_window(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, ks: list[int], what: str) -> bool:
+        """Solve the first window in batch and hand it to the smoother; on failure undo and wait for more keyframes."""
+        try:
+            values = batch_solve(graph, values)
+            self.smoother.update(graph, values, {key: 0.0 for key in values.keys()})
+        except (RuntimeError, SolverFailure) as exc:
+            self._warn(f"{what} at keyframe {ks[-1]} failed ({first_line(exc)}); retrying later")
+            self.smoother.reset()
+            self.pending = ks[1:]
+            for j in list(self.num_obs):
+                self.book.tracks[j].admitted = False
+            self.num_obs.clear()
+            return False
+        self._absorb(self.smoother.estimate())
+        return True
 
     def _guess(self, ks: list[int]) -> InitialGuess | None:
         rest = static_start(self.imu, self.t_ns[ks[0]], self.t_ns[ks[-1]], self.cfg)

@@ -20,7 +20,6 @@ import numpy as np
 from backend import factors as fb
 from backend.keys import L, X
 from backend.landmarks import camera_poses, triangulate
-from backend.smoother import SolverFailure, batch_solve, first_line
 from vio.geometry import inv_T
 from vio.records import StateEstimate
 
@@ -96,18 +95,8 @@ class VisualOnly:
                 if kk in poses:
                     self._add_projection(graph, kk, j, uv)
             tr.admitted = True
-        try:
-            values = batch_solve(graph, values)
-            self.smoother.update(graph, values, {key: 0.0 for key in values.keys()})
-        except (RuntimeError, SolverFailure) as exc:
-            self._warn(f"visual initialisation at keyframe {k1} failed ({first_line(exc)}); retrying later")
-            self.smoother.reset()
-            self.pending = ks[1:]
-            for j in list(self.num_obs):
-                self.book.tracks[j].admitted = False
-            self.num_obs.clear()
+        if not self._start_window(graph, values, ks, "visual initialisation"):
             return []
-        self._absorb(self.smoother.estimate())
         self.initialised, self.init_kind = True, "visual"
         ms = (time.perf_counter() - t0) * 1e3
         self.timings_ms.append(ms)
