@@ -111,7 +111,13 @@ class WindowInitialiser:
         for k in ks:
             if self.anchor is not None:  # matched now, added once aligned (see backend.anchoring)
                 self.anchor.match(k, self.t_ns[k])
-        poses = guess.world_T_body
+        self._admit_window_landmarks(graph, values, guess.world_T_body)
+        return graph, values
+
+    def _admit_window_landmarks(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, poses: dict[int, np.ndarray]
+    ) -> None:
+        """Admit every track that triangulates over the window's poses: a landmark, a weak prior, its views."""
         for j, tr in self.book.tracks.items():
             p = self.book.try_admit(j, poses)
             if p is None:
@@ -122,4 +128,3 @@ class WindowInitialiser:
                 if kk in poses:
                     self._add_projection(graph, kk, j, uv)
             tr.admitted = True
-        return graph, values

@@ -17,7 +17,6 @@ import cv2
 import gtsam
 import numpy as np
 
-from backend import factors as fb
 from backend.keys import L, X
 from backend.landmarks import camera_poses, triangulate
 from vio.geometry import inv_T
@@ -85,16 +84,7 @@ class VisualOnly:
             self.all_factors.add(f)
         for k, T in poses.items():
             values.insert(X(k), gtsam.Pose3(T))
-        for j, tr in self.book.tracks.items():
-            p = self.book.try_admit(j, poses)
-            if p is None:
-                continue
-            values.insert(L(j), p)
-            graph.add(fb.landmark_prior(j, p, self.cfg.landmark_prior_sigma_m))
-            for kk, uv in tr.views.items():
-                if kk in poses:
-                    self._add_projection(graph, kk, j, uv)
-            tr.admitted = True
+        self._admit_window_landmarks(graph, values, poses)
         if not self._start_window(graph, values, ks, "visual initialisation"):
             return []
         self.initialised, self.init_kind = True, "visual"
