@@ -24,6 +24,7 @@ from backend.anchoring import PositionAnchor
 from backend.initialisation import static_start
 from backend.keys import B, L, V, X
 from backend.landmarks import LandmarkBook
+from backend.reobserve import Describe, Reidentification
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
 from backend.startup import WindowInitialiser
 from backend.visual_only import VisualOnly
@@ -48,7 +49,7 @@ def _get(values: gtsam.Values, key: int) -> Any:
     return values.atPoint3(key)
 
 
-class VioEstimator(WindowInitialiser, VisualOnly):
+class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
     """Tightly coupled visual-inertial smoothing. Feed keyframes with `add_keyframe`, then call `finish`."""
 
     def __init__(
@@ -86,6 +87,7 @@ class VioEstimator(WindowInitialiser, VisualOnly):
         self.num_splits = 0  # tracks that drifted off their landmark and became a new one
         self._dirty = False  # True when the smoother holds estimates not yet pulled into `values`
         self._segments: dict[int, tuple[int, int]] = {}  # track id -> (segment, views in the segment)
+        self._init_reid()
 
     # ----------------------------------------------------------------- helpers
     def _pose(self, k: int) -> np.ndarray:
@@ -162,8 +164,12 @@ class VioEstimator(WindowInitialiser, VisualOnly):
         }
 
     # ----------------------------------------------------------------- public
-    def add_keyframe(self, t_ns: int, tracks: FeatureTracks) -> list[StateEstimate]:
-        """Add a keyframe (tracks in distorted pixels); returns the estimates produced (several after init)."""
+    def add_keyframe(self, t_ns: int, tracks: FeatureTracks, describe: Describe | None = None) -> list[StateEstimate]:
+        """Add a keyframe (tracks in distorted pixels); returns the estimates produced (several after init).
+
+        `describe` (frontend.descriptors.KeyframeDescriber.describe of the keyframe image) enables landmark
+        re-identification (backend/reobserve.py); without it every new track is a new landmark.
+        """
         k = 0 if self.last_k is None else self.last_k + 1
         self.t_ns[k] = int(t_ns)
         uv = fb.undistorted_px(self.camera, tracks.uv)
@@ -173,7 +179,9 @@ class VioEstimator(WindowInitialiser, VisualOnly):
             if getattr(pre, "gap", False):
                 self._warn(f"IMU gap before keyframe {k} (t={t_ns} ns); its inertial factor is weak")
         prev, self.last_k = self.last_k, k
-        ids = self._segment_ids(tracks.ids)
+        ids = self._apply_aliases(self._segment_ids(tracks.ids))
+        if self.initialised and describe is not None:
+            ids = self._reidentify(prev, k, ids, uv, tracks.uv, describe)
         self.book.observe(k, ids, uv)
         if not self.initialised:
             self.pending.append(k)
@@ -278,7 +286,8 @@ class VioEstimator(WindowInitialiser, VisualOnly):
         for j in ids.tolist():
             tr = self.book.tracks[j]
             if tr.admitted:
-                if self.smoother.has(L(j)) and self._consistent(j, pred.matrix(), tr.views[k]):
+                reid = j in self._reid_now  # already gated by the re-identification radius
+                if self.smoother.has(L(j)) and (reid or self._consistent(j, pred.matrix(), tr.views[k])):
                     self._add_projection(graph, k, j, tr.views[k])
                     stamps[L(j)] = t_s
                 elif self.smoother.has(L(j)):
@@ -292,6 +301,7 @@ class VioEstimator(WindowInitialiser, VisualOnly):
                 continue
             values.insert(L(j), p)
             self._set(L(j), p)
+            self.atlas.set_position(j, p)
             stamps[L(j)] = t_s
             graph.add(fb.landmark_prior(j, p, self.cfg.landmark_prior_sigma_m))
             for kk, uv in tr.views.items():
@@ -319,7 +329,7 @@ class VioEstimator(WindowInitialiser, VisualOnly):
 
     def _split_track(self, j: int, k: int) -> None:
         """Track drift: the view of keyframe k disagrees with landmark j, so it starts a new landmark."""
-        base = j & ((1 << 40) - 1)
+        base = self._unalias(j)
         seg, _ = self._segments.get(base, (j >> 40, 0))
         new = base + ((seg + 1) << 40)
         self._segments[base] = (seg + 1, 1)

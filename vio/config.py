@@ -73,6 +73,12 @@ class BackendConfig:
     static_init_max_acc_std: float = 0.15  # std of 0.1 s accelerometer block means for a static start, m/s^2
     still_max_px: float = 0.5  # zero-velocity update when tracks move less than this (median) and the IMU rests, px
     still_window_s: float = 0.5  # IMU window of the at-rest test of the zero-velocity update, s
+    reid: bool = True  # re-identify new tracks with map landmarks by descriptor (backend/atlas.py); needs images
+    reid_radius_px: float = 20.0  # search radius around a landmark's predicted projection, px
+    reid_max_hamming: int = 50  # largest descriptor distance of a re-identification, bits of 256
+    reid_ratio: float = 0.8  # best distance must be below this times the second best among the candidates
+    reid_max_view_deg: float = 30.0  # compare with snapshots taken within this viewing-direction change, deg
+    reid_refresh_keyframes: int = 10  # refresh the atlas' landmark positions from the smoother this often
     use_imu: bool = True  # false: projection factors only (backend/visual_only.py; scale unknown, Sim3 only)
 
 

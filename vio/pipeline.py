@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from backend.estimator import VioEstimator
+from frontend.descriptors import KeyframeDescriber
 from frontend.keyframes import KeyframeSelector
 from frontend.preintegration import ImuPreintegrator
 from vio import outputs
@@ -27,6 +28,7 @@ from vio.config import Config
 from vio.errors import CaptureError, EstimationError
 
 log = logging.getLogger(__name__)
+_TRACK_MASK = (1 << 40) - 1  # landmark id -> the tracker's track id (backend.estimator._segment_ids)
 
 
 def open_any(capture: str | os.PathLike[str] | Capture, calib: str | None = None) -> Capture:
@@ -143,7 +145,10 @@ def run_capture(
         if selector.consider(tracks):
             n_kf += 1
             try:
-                produced = est.add_keyframe(tracks.t_ns, tracks)
+                describe = None
+                if frame is not None and cfg.backend.reid:
+                    describe = KeyframeDescriber(frame.image).describe
+                produced = est.add_keyframe(tracks.t_ns, tracks, describe)
             except (RuntimeError, ValueError) as exc:  # never end the run on one bad keyframe
                 msg = f"keyframe at t={tracks.t_ns} ns skipped: {type(exc).__name__}: {exc}"
                 log.warning(msg)
@@ -160,7 +165,7 @@ def run_capture(
     refine_info = est.finish(refine)
     states = est.states()
     ids, pts, nobs = est.landmarks()
-    rgb = np.array([colours.get(int(j), (200, 200, 200)) for j in ids], np.uint8).reshape(-1, 3)
+    rgb = np.array([colours.get(int(j) & _TRACK_MASK, (200, 200, 200)) for j in ids], np.uint8).reshape(-1, 3)
     wall = time.perf_counter() - t_start
     span_s = (t_last - t_first) * 1e-9 if t_first is not None else 0.0
     tm = np.asarray(est.timings_ms)
@@ -175,6 +180,7 @@ def run_capture(
         "initialisation": est.init_kind,
         "num_zero_velocity_updates": est.num_still,
         "num_track_splits": est.num_splits,
+        "num_reidentified": est.num_reidentified,
         "num_position_factors": est.anchor.num_factors if est.anchor is not None else 0,
         "span_s": span_s,
         "wall_time_s": wall,
