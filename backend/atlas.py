@@ -16,25 +16,16 @@ was taken within `reid_max_view_deg` and a depth ratio of `MAX_DEPTH_RATIO`, the
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from frontend.descriptors import hamming
+from frontend.descriptors import DESCRIPTOR_BYTES, hamming
 from vio.config import BackendConfig
 
 MAX_SNAPSHOTS = 6
 SNAPSHOT_SPACING_DEG = 10.0
 MAX_DEPTH_RATIO = 1.25  # one-level descriptors: compare views within this range of distances only
 _MIN_DEPTH_M = 0.05
-
-
-@dataclass
-class _Entry:
-    p_world: np.ndarray  # (3,) m
-    desc: list[np.ndarray] = field(default_factory=list)  # (32,) uint8 each
-    dirs: list[np.ndarray] = field(default_factory=list)  # (3,) unit vector landmark -> camera, world
-    depths: list[float] = field(default_factory=list)  # m
 
 
 def gravity_angles_deg(world_T_cam: np.ndarray, uv_px: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -50,78 +41,117 @@ def gravity_angles_deg(world_T_cam: np.ndarray, uv_px: np.ndarray, K: np.ndarray
 
 
 class LandmarkAtlas:
-    """Snapshots of map landmarks and the matcher of new tracks against them (all in undistorted pixels)."""
+    """Snapshots of map landmarks and the matcher of new tracks against them (all in undistorted pixels).
+
+    Storage is columnar (numpy arrays grown by doubling) so that projecting thousands of landmarks per keyframe
+    stays a few vectorised operations: landmark rows (id, position) and snapshot slots (landmark row, descriptor,
+    viewing direction, depth), `MAX_SNAPSHOTS` slots per landmark at most.
+    """
 
     def __init__(self, K: np.ndarray, body_T_cam: np.ndarray, cfg: BackendConfig) -> None:
         self.K = np.asarray(K, float)
         self.body_T_cam = np.asarray(body_T_cam, float)
         self.cfg = cfg
-        self.entries: dict[int, _Entry] = {}
+        self.rows: dict[int, int] = {}  # landmark id -> row
+        self._ids = np.zeros(0, np.int64)
+        self._pos = np.zeros((0, 3))
+        self._slots: list[list[int]] = []  # row -> its snapshot slots, oldest first
+        self._snap_row = np.zeros(0, np.int64)
+        self._snap_desc = np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
+        self._snap_dir = np.zeros((0, 3))
+        self._snap_depth = np.zeros(0)
+        self._num_snaps = 0
 
     def __len__(self) -> int:
-        return len(self.entries)
+        return len(self.rows)
+
+    def position(self, j: int) -> np.ndarray:
+        return self._pos[self.rows[j]].copy()
+
+    def num_snapshots(self, j: int) -> int:
+        return len(self._slots[self.rows[j]]) if j in self.rows else 0
 
     def set_position(self, j: int, p_world: np.ndarray) -> None:
-        entry = self.entries.get(j)
-        if entry is None:
-            self.entries[j] = _Entry(np.asarray(p_world, float).copy())
+        row = self.rows.get(j)
+        if row is None:
+            row = self.rows[j] = len(self.rows)
+            if row >= len(self._ids):
+                self._ids = _grow(self._ids, row + 1)
+                self._pos = _grow(self._pos, row + 1)
+            self._ids[row] = j
+            self._slots.append([])
+        self._pos[row] = p_world
+
+    def _new_slot(self, row: int) -> int:
+        slots = self._slots[row]
+        if len(slots) >= MAX_SNAPSHOTS:  # keep the first view and the newest ones
+            slot = slots.pop(1)
         else:
-            entry.p_world = np.asarray(p_world, float).copy()
+            slot = self._num_snaps
+            self._num_snaps += 1
+            if slot >= len(self._snap_row):
+                n = slot + 1
+                self._snap_row, self._snap_desc = _grow(self._snap_row, n), _grow(self._snap_desc, n)
+                self._snap_dir, self._snap_depth = _grow(self._snap_dir, n), _grow(self._snap_depth, n)
+        slots.append(slot)
+        return slot
 
     def remember(self, world_T_body: np.ndarray, ids: np.ndarray, desc: np.ndarray, ok: np.ndarray) -> None:
         """Keep the descriptors of landmarks seen from world_T_body when the viewpoint is a new one."""
         c = (world_T_body @ self.body_T_cam)[:3, 3]
+        cos_new = np.cos(np.radians(SNAPSHOT_SPACING_DEG))
         for j, d, good in zip(np.asarray(ids).tolist(), desc, ok, strict=True):
-            entry = self.entries.get(int(j))
-            if entry is None or not good:
+            row = self.rows.get(int(j))
+            if row is None or not good:
                 continue
-            ray = c - entry.p_world
+            ray = c - self._pos[row]
             depth = float(np.linalg.norm(ray))
             if depth < _MIN_DEPTH_M:
                 continue
             ray /= depth
-            if entry.dirs and max(float(r @ ray) for r in entry.dirs) > np.cos(np.radians(SNAPSHOT_SPACING_DEG)):
+            slots = self._slots[row]
+            if slots and float(np.max(self._snap_dir[slots] @ ray)) > cos_new:
                 continue
-            if len(entry.desc) >= MAX_SNAPSHOTS:  # keep the first views and the newest
-                entry.desc.pop(1), entry.dirs.pop(1), entry.depths.pop(1)
-            entry.desc.append(np.asarray(d, np.uint8).copy())
-            entry.dirs.append(ray)
-            entry.depths.append(depth)
+            slot = self._new_slot(row)
+            self._snap_row[slot], self._snap_desc[slot] = row, d
+            self._snap_dir[slot], self._snap_depth[slot] = ray, depth
 
     def _candidates(
         self, world_T_body: np.ndarray, exclude: set[int], alive: Callable[[int], bool]
     ) -> tuple[list[int], np.ndarray, np.ndarray]:
         """Landmarks visible from world_T_body with a comparable snapshot: ids, (C, 2) pixels, (C, 32) descriptors."""
+        empty = [], np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
+        n, m = len(self.rows), self._num_snaps
+        if not n or not m:
+            return empty
         world_T_cam = world_T_body @ self.body_T_cam
         R, c = world_T_cam[:3, :3], world_T_cam[:3, 3]
-        ids = [j for j, e in self.entries.items() if e.desc and j not in exclude and alive(j)]
-        if not ids:
-            return [], np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
-        P = np.array([self.entries[j].p_world for j in ids])
-        p_cam = (P - c) @ R
+        p_cam = (self._pos[:n] - c) @ R
         z = p_cam[:, 2]
-        front = z > _MIN_DEPTH_M
-        uv = np.full((len(ids), 2), -1e9)
-        uv[front] = p_cam[front, :2] / z[front, None] * np.diag(self.K)[:2] + self.K[:2, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = p_cam[:, :2] / z[:, None] * np.diag(self.K)[:2] + self.K[:2, 2]
         w, h = 2.0 * self.K[0, 2], 2.0 * self.K[1, 2]
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        out_ids, out_uv, out_desc = [], [], []
-        cos_max = np.cos(np.radians(self.cfg.reid_max_view_deg))
-        for i in np.flatnonzero(inside).tolist():
-            e = self.entries[ids[i]]
-            ray = c - e.p_world
-            depth = float(np.linalg.norm(ray))
-            cos = np.array(e.dirs) @ (ray / depth)
-            best = int(np.argmax(cos))
-            ratio = depth / e.depths[best]
-            if cos[best] < cos_max or not 1.0 / MAX_DEPTH_RATIO <= ratio <= MAX_DEPTH_RATIO:
-                continue
-            out_ids.append(ids[i])
-            out_uv.append(uv[i])
-            out_desc.append(e.desc[best])
-        if not out_ids:
-            return [], np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
-        return out_ids, np.array(out_uv), np.array(out_desc)
+        visible = (z > _MIN_DEPTH_M) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        rays = c - self._pos[:n]
+        depth = np.linalg.norm(rays, axis=1)
+        rays /= np.maximum(depth, 1e-9)[:, None]
+        srow = self._snap_row[:m]
+        cos = np.einsum("ij,ij->i", self._snap_dir[:m], rays[srow])
+        ratio = depth[srow] / self._snap_depth[:m]
+        ok = visible[srow] & (cos >= np.cos(np.radians(self.cfg.reid_max_view_deg)))
+        ok &= (ratio >= 1.0 / MAX_DEPTH_RATIO) & (ratio <= MAX_DEPTH_RATIO)
+        slots = np.flatnonzero(ok)
+        if not len(slots):
+            return empty
+        slots = slots[np.lexsort((-cos[slots], srow[slots]))]  # per landmark row, the closest viewpoint first
+        first = np.ones(len(slots), bool)
+        first[1:] = srow[slots][1:] != srow[slots][:-1]
+        slots = slots[first]
+        keep = [i for i, s in enumerate(slots.tolist()) if (j := int(self._ids[srow[s]])) not in exclude and alive(j)]
+        if not keep:
+            return empty
+        slots = slots[keep]
+        return self._ids[srow[slots]].tolist(), uv[srow[slots]], self._snap_desc[slots]
 
     def match(
         self,
@@ -134,7 +164,7 @@ class LandmarkAtlas:
     ) -> dict[int, int]:
         """Re-identify new tracks (rows of uv_px (N, 2) undistorted px, desc (N, 32), ok (N,)) seen from the
         predicted pose world_T_body; landmarks in `exclude` (seen by their own track now) or not `alive(j)` are not
-        candidates. Returns {row: landmark id}, one row per landmark."""
+        candidates. Returns {row: landmark id}, one row per landmark, best (smallest distance) first."""
         ids, proj, cand_desc = self._candidates(world_T_body, exclude, alive)
         if not ids or not len(uv_px):
             return {}
@@ -150,9 +180,16 @@ class LandmarkAtlas:
             order = np.argsort(drow, kind="stable")
             best = int(drow[order[0]])
             second = int(drow[order[1]]) if len(order) > 1 else 10_000
-            if best > self.cfg.reid_max_hamming or best > self.cfg.reid_ratio * second:
+            if best > self.cfg.reid_max_hamming or best >= self.cfg.reid_ratio * second:
                 continue
             col = int(order[0])
             if col not in claims or best < claims[col][0]:
                 claims[col] = (best, r)
-        return {r: ids[col] for col, (_, r) in claims.items()}
+        return {r: ids[col] for col, (_, r) in sorted(claims.items(), key=lambda item: item[1])}
+
+
+def _grow(a: np.ndarray, n: int) -> np.ndarray:
+    """`a` with at least n rows (capacity doubled), new rows zero."""
+    out = np.zeros((max(n, 2 * len(a), 64),) + a.shape[1:], a.dtype)
+    out[: len(a)] = a
+    return out

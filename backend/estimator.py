@@ -254,6 +254,7 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
     def _add_projection(self, graph: gtsam.NonlinearFactorGraph, k: int, j: int, uv: np.ndarray) -> None:
         self._add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.noise))
         self.num_obs[j] = self.num_obs.get(j, 0) + 1
+        self._last_obs[j] = k
 
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
         t0 = time.perf_counter()
@@ -286,9 +287,9 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
         for j in ids.tolist():
             tr = self.book.tracks[j]
             if tr.admitted:
-                reid = j in self._reid_now  # already gated by the re-identification radius
-                if self.smoother.has(L(j)) and (reid or self._consistent(j, pred.matrix(), tr.views[k])):
-                    self._add_projection(graph, k, j, tr.views[k])
+                gate = self.cfg.reid_radius_px if j in self._alias_rev else self.cfg.max_reprojection_px
+                if self.smoother.has(L(j)) and self._consistent(j, pred.matrix(), tr.views[k], gate):
+                    self._add_projection(self._loop_graph(graph, j, k), k, j, tr.views[k])
                     stamps[L(j)] = t_s
                 elif self.smoother.has(L(j)):
                     self._split_track(j, k)
@@ -308,6 +309,7 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
                 if kk in poses and self.smoother.has(X(kk)) or kk == k:
                     self._add_projection(graph, kk, j, uv)
             tr.admitted = True
+        self._flush_loops(graph, k)
         try:
             self.smoother.update(graph, values, stamps)
             est = self.smoother.estimate_keys(self._recent_keys(k))
@@ -321,11 +323,11 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
         self.timings_ms.append(ms)
         return self._state(k, ms)
 
-    def _consistent(self, j: int, world_T_body: np.ndarray, uv: np.ndarray) -> bool:
-        """A new view of landmark j reprojects within `max_reprojection_px` from the predicted pose."""
+    def _consistent(self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float) -> bool:
+        """A new view of landmark j reprojects within `gate_px` from the predicted pose."""
         p = self.smoother.estimate_keys([L(j)]).atPoint3(L(j))
         err, depth = self.book.reprojection_px(world_T_body, p, uv)
-        return depth > 0.05 and err <= self.cfg.max_reprojection_px
+        return depth > 0.05 and err <= gate_px
 
     def _split_track(self, j: int, k: int) -> None:
         """Track drift: the view of keyframe k disagrees with landmark j, so it starts a new landmark."""
@@ -357,6 +359,7 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
         self._warn(f"solver failed at keyframe {k} ({reason}); rebuilding from keyframe {prev}")
         self.recoveries.append({"k": k, "t_ns": self.t_ns[k], "reason": reason, "restart_from_k": prev})
         self.smoother.reset()
+        self._drop_loops()
         self.book.forget_before(prev)
         self.num_obs = {j: n for j, n in self.num_obs.items() if self.values.exists(L(j))}
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()

@@ -35,6 +35,11 @@ class Reidentification:
         self._reid_now: set[int] = set()  # landmarks re-identified at the current keyframe
         self.num_reidentified = 0
         self._since_refresh = 0
+        self._last_obs: dict[int, int] = {}  # landmark id -> last keyframe with a projection factor on it
+        self._loops = gtsam.NonlinearFactorGraph()  # re-observations of old landmarks, waiting for the next flush
+        self._loop_landmarks: set[int] = set()
+        self.num_loop_flushes = 0
+        self._loop_budget = self.cfg.reid_max_loops
 
     def _apply_aliases(self, ids: np.ndarray) -> np.ndarray:
         return np.array([self._alias.get(j, j) for j in ids.tolist()], np.int64)
@@ -57,15 +62,23 @@ class Reidentification:
         new = np.flatnonzero([j not in self.book.tracks for j in ids.tolist()])
         if not len(new):
             return ids
-        alive = lambda j: self.smoother.has(L(j))  # noqa: E731
+        max_age = self.cfg.reid_max_age_keyframes
+
+        def alive(j: int) -> bool:
+            return self.smoother.has(L(j)) and (max_age <= 0 or k - self._last_obs.get(j, k) <= max_age)
+
         found = self.atlas.match(world_T_body, uv[new], desc[new], ok[new], set(ids.tolist()), alive)
         out = ids.copy()
         for row, lid in found.items():
+            if k - self._last_obs.get(lid, k) > self.cfg.reid_defer_keyframes:  # an old landmark: a loop link
+                if self._loop_budget <= 0:
+                    continue
+                self._loop_budget -= 1
             src = int(ids[new[row]])
             self._alias[src], self._alias_rev[lid] = lid, src
             out[new[row]] = lid
             self._reid_now.add(lid)
-        self.num_reidentified += len(found)
+        self.num_reidentified += len(self._reid_now)
         return out
 
     def _refresh_atlas(self) -> None:
@@ -78,9 +91,40 @@ class Reidentification:
             est = self.smoother.estimate()
         except SolverFailure:
             return
-        for j in self.atlas.entries:
+        for j in list(self.atlas.rows):
             if est.exists(L(j)):
                 self.atlas.set_position(j, est.atPoint3(L(j)))
+
+    def _loop_graph(self, graph: gtsam.NonlinearFactorGraph, j: int, k: int) -> gtsam.NonlinearFactorGraph:
+        """Where a new view of landmark j goes: the keyframe's graph, or the loop batch when j is an old landmark
+        re-identified (not observed for `reid_defer_keyframes`) and waiting for the next flush.
+
+        A factor on an old landmark makes iSAM2 re-eliminate every clique from that landmark to the root (most of
+        the graph after a loop); batching them pays that once per flush instead of once per keyframe (measured on
+        the 60 s orbit: see docs/BENCHMARKS.md). After a flush the landmark sits near the root (iSAM2 orders the
+        keys of new factors last) and its next views are cheap.
+        """
+        if j in self._loop_landmarks:
+            return self._loops
+        if j in self._reid_now and k - self._last_obs.get(j, k) > self.cfg.reid_defer_keyframes:
+            self._loop_landmarks.add(j)
+            return self._loops
+        return graph
+
+    def _flush_loops(self, graph: gtsam.NonlinearFactorGraph, k: int) -> None:
+        """Every `reid_flush_keyframes`, move the waiting loop factors into the keyframe's graph and renew the
+        budget of loop links (`reid_max_loops` old landmarks re-identified per flush period)."""
+        if k % max(self.cfg.reid_flush_keyframes, 1):
+            return
+        self._loop_budget = self.cfg.reid_max_loops
+        if self._loops.size():
+            graph.push_back(self._loops)
+            self._drop_loops()
+            self.num_loop_flushes += 1
+
+    def _drop_loops(self) -> None:
+        self._loops = gtsam.NonlinearFactorGraph()
+        self._loop_landmarks = set()
 
     def _unalias(self, j: int) -> int:
         """The track id base that produced landmark j's current view (j's own base when not aliased)."""

@@ -100,3 +100,14 @@ def test_cli_help_and_errors_are_one_line(tmp_path):
     assert r.returncode != 0
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert "missing" in r.stderr
+
+
+def test_output_folder_in_the_way_is_one_clear_error(tmp_path, sim_capture):
+    capture = sim_capture("orbit", 2.0, images=False)
+    blocker = tmp_path / "taken"
+    blocker.write_text("not a folder")
+    cmd = [sys.executable, "-m", "vio.cli", "run", str(capture), "--out", str(blocker)]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "existing file" in r.stderr
+    assert blocker.read_text() == "not a folder"  # nothing lost

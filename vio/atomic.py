@@ -10,6 +10,20 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+from vio.errors import OutputError
+
+
+def ensure_dir(path: str | os.PathLike[str]) -> Path:
+    """Create an output folder (and its parents); a file in the way or a permission problem is an OutputError."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{path}: output folder is an existing file; choose another --out")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot create the output folder ({exc.strerror or exc})") from None
+    return path
+
 
 @contextlib.contextmanager
 def atomic_open(path: str | os.PathLike[str], mode: str = "w", **kwargs: Any) -> Iterator[IO[Any]]:

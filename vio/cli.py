@@ -167,6 +167,9 @@ def main(argv: list[str] | None = None) -> int:
     except VioError as exc:
         print(f"vio {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an unforeseen file-system problem (disk full, permissions): one line, no traceback
+        print(f"vio {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"vio {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -79,6 +79,10 @@ class BackendConfig:
     reid_ratio: float = 0.8  # best distance must be below this times the second best among the candidates
     reid_max_view_deg: float = 30.0  # compare with snapshots taken within this viewing-direction change, deg
     reid_refresh_keyframes: int = 10  # refresh the atlas' landmark positions from the smoother this often
+    reid_defer_keyframes: int = 30  # a landmark unobserved this long is old: its re-observations are batched
+    reid_max_age_keyframes: int = 0  # only landmarks observed within this many keyframes are candidates (0: all)
+    reid_max_loops: int = 10  # old landmarks re-identified per flush period at most (bounds the solver's cost)
+    reid_flush_keyframes: int = 10  # batched re-observations of old landmarks enter the smoother this often
     use_imu: bool = True  # false: projection factors only (backend/visual_only.py; scale unknown, Sim3 only)
 
 

@@ -36,3 +36,7 @@ class EstimationError(VioError):
 
 class SimulationError(VioError):
     """A simulation scenario or trajectory file is invalid."""
+
+
+class OutputError(VioError):
+    """An output folder or file cannot be created or written (a file in the way, no permission, disk full)."""

@@ -13,7 +13,6 @@ import logging
 import os
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +22,7 @@ from frontend.descriptors import KeyframeDescriber
 from frontend.keyframes import KeyframeSelector
 from frontend.preintegration import ImuPreintegrator
 from vio import outputs
+from vio.atomic import ensure_dir
 from vio.capture import Capture
 from vio.config import Config
 from vio.errors import CaptureError, EstimationError
@@ -103,11 +103,10 @@ def run_capture(
     """Estimate the whole capture; writes the four output files into `out` and returns the run summary."""
     t_start = time.perf_counter()
     cpu_start = time.process_time()
+    out = ensure_dir(out)  # first: a folder in the way fails before any work
     cap = open_any(capture, calib)
     if cap.camera is None or cap.imu is None or cap.imu_calib is None:
         raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     known = None
     if positions is not None:
         from vio.positions import read_positions

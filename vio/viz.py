@@ -20,6 +20,7 @@ import numpy as np
 import rerun as rr
 
 from vio import viz_blueprint as bp
+from vio.atomic import ensure_dir
 from vio.errors import VioError
 from vio.records import CameraCalib, Frame, GroundTruth, ImuSeries, StateEstimate
 from vio.viz_geometry import anchor_yaw_translation, reprojection_errors_px
@@ -247,7 +248,7 @@ def make_rerun_sink(
     rrd_path = rrd_tmp = None
     if rrd is not None:
         rrd_path = Path(rrd)
-        rrd_path.parent.mkdir(parents=True, exist_ok=True)
+        ensure_dir(rrd_path.parent)
         rrd_tmp = rrd_path.with_name(f".{rrd_path.name}.tmp")
         sinks.append(rr.FileSink(str(rrd_tmp)))
     if not sinks:

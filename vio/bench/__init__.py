@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from vio.atomic import write_json
+from vio.atomic import ensure_dir, write_json
 from vio.bench.suites import Case, Method, Suite, get_suite
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,7 @@ def run_suite(suite: Suite, out: str | os.PathLike[str], jobs: int = 2) -> list[
     """Simulate every capture of `suite` and run every method on it; writes results.json, results.md, plots/."""
     from vio.bench.report import write_reports
 
-    out = Path(out)
+    out = ensure_dir(out)
     captures, runs = out / "captures", out / "runs"
     jobs = max(1, int(jobs))
     t0 = time.perf_counter()

@@ -1,0 +1,148 @@
+"""Landmark re-identification: gravity-aligned descriptors (frontend.descriptors) and the atlas (backend.atlas)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from backend.atlas import LandmarkAtlas, gravity_angles_deg
+from frontend.descriptors import KeyframeDescriber, hamming
+from vio.config import BackendConfig
+
+K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def _texture(seed: int = 0) -> np.ndarray:
+    """A 480 x 640 blob texture with plenty of corners."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640)).astype(np.float32), (0, 0), 3.0)
+    return cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+
+
+def _corners(img: np.ndarray, n: int = 80) -> np.ndarray:
+    pts = cv2.goodFeaturesToTrack(img, n, 0.01, 15).reshape(-1, 2)
+    centre = np.array([320.0, 240.0])
+    return pts[np.linalg.norm(pts - centre, axis=1) < 150]  # stay inside the rotated image
+
+
+def test_hamming_counts_differing_bits():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, (4, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    brute = np.array([[sum(bin(x ^ y).count("1") for x, y in zip(ra, rb, strict=True)) for rb in b] for ra in a])
+    assert np.array_equal(hamming(a, b), brute)
+    assert np.all(np.diag(hamming(a, a)) == 0)
+
+
+def test_descriptors_follow_the_given_orientation():
+    """Rotating the image and the orientation together leaves the descriptor nearly unchanged; rotating only the
+    image does not (so the orientation is really used, and matching needs it)."""
+    img = _texture()
+    pts = _corners(img)
+    rot = cv2.getRotationMatrix2D((320.0, 240.0), 35.0, 1.0)
+    img_r = cv2.warpAffine(img, rot, (640, 480))
+    pts_r = np.column_stack([pts, np.ones(len(pts))]) @ rot.T
+    d0, ok0 = KeyframeDescriber(img).describe(pts, np.zeros(len(pts)))
+    d1, ok1 = KeyframeDescriber(img_r).describe(pts_r, np.full(len(pts), -35.0))
+    d2, ok2 = KeyframeDescriber(img_r).describe(pts_r, np.zeros(len(pts)))
+    both = ok0 & ok1 & ok2
+    assert both.sum() > 10
+    same = np.diag(hamming(d0[both], d1[both]))
+    unaligned = np.diag(hamming(d0[both], d2[both]))
+    others = hamming(d0[both], d0[both])[~np.eye(both.sum(), dtype=bool)]
+    assert np.median(same) < 25 < np.median(unaligned) and np.median(others) > 90
+
+
+def test_points_near_the_border_are_not_described():
+    img = _texture()
+    desc, ok = KeyframeDescriber(img).describe(np.array([[2.0, 2.0], [320.0, 240.0], [639.0, 100.0]]), np.zeros(3))
+    assert ok.tolist() == [False, True, False]
+    assert not desc[0].any() and desc[1].any()
+
+
+def _look(yaw_deg: float, roll_deg: float = 0.0, c=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """world_T_cam of a level camera at c looking horizontally (yaw about world z), rolled about its optical axis."""
+    z = np.array([np.sin(np.radians(yaw_deg)), np.cos(np.radians(yaw_deg)), 0.0])  # optical axis
+    y = np.array([0.0, 0.0, -1.0])  # image down = world down
+    x = np.cross(y, z)
+    R = np.column_stack([x, y, z])
+    r = np.radians(roll_deg)
+    Rz = np.array([[np.cos(r), -np.sin(r), 0.0], [np.sin(r), np.cos(r), 0.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R @ Rz, c
+    return T
+
+
+def test_gravity_points_down_the_image_of_a_level_camera_and_turns_with_roll():
+    uv = np.array([[320.0, 240.0], [100.0, 400.0]])
+    assert np.allclose(gravity_angles_deg(_look(0.0), uv, K), 90.0, atol=1e-6)  # straight down the image
+    rolled = gravity_angles_deg(_look(0.0, roll_deg=30.0), uv[:1], K)
+    assert rolled[0] == pytest.approx(60.0, abs=1e-6)  # the image turns against the camera
+
+
+def _atlas(cfg: BackendConfig | None = None) -> tuple[LandmarkAtlas, np.ndarray, np.ndarray]:
+    """An atlas of 40 landmarks 1-2 m in front of a camera at the origin, with random descriptors."""
+    rng = np.random.default_rng(3)
+    atlas = LandmarkAtlas(K, np.eye(4), cfg or BackendConfig())
+    pts = np.column_stack([rng.uniform(-0.6, 0.6, 40), rng.uniform(0.0, 0.3, 40), rng.uniform(-0.4, 0.4, 40)])
+    desc = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    for j, p in enumerate(pts):
+        atlas.set_position(100 + j, p)
+    atlas.remember(_look(0.0), np.arange(100, 140), desc, np.ones(40, bool))
+    return atlas, pts, desc
+
+
+def _pixels(world_T_cam: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    p = (pts - world_T_cam[:3, 3]) @ world_T_cam[:3, :3]
+    return p[:, :2] / p[:, 2:] * 500.0 + np.array([320.0, 240.0])
+
+
+def test_atlas_re_identifies_new_tracks_at_the_landmark_projections():
+    atlas, pts, desc = _atlas()
+    pose = _look(5.0, c=(0.05, -1.0, 0.0))  # a little moved and turned
+    uv = _pixels(pose, pts[:10]) + 1.5
+    noisy = desc[:10].copy()
+    noisy[:, 0] ^= 0b00010101  # a few bits flipped
+    found = atlas.match(pose, uv, noisy, np.ones(10, bool), exclude=set())
+    assert found == {i: 100 + i for i in range(10)}
+    # landmarks seen now by their own tracks, or no longer in the solver, are never candidates
+    assert 100 not in atlas.match(pose, uv, noisy, np.ones(10, bool), exclude={100}).values()
+    assert atlas.match(pose, uv, noisy, np.ones(10, bool), exclude=set(), alive=lambda j: False) == {}
+
+
+def test_atlas_rejects_far_pixels_wrong_descriptors_and_new_viewpoints():
+    atlas, pts, desc = _atlas()
+    pose = _look(0.0)
+    uv = _pixels(pose, pts[:5])
+    ones = np.ones(5, bool)
+    assert atlas.match(pose, uv + 30.0, desc[:5], ones, set()) == {}  # outside the search radius
+    assert atlas.match(pose, uv, 255 - desc[:5], ones, set()) == {}  # a different point
+    assert atlas.match(pose, uv, desc[:5], ~ones, set()) == {}  # not described
+    far = _look(60.0, c=(-0.87, -0.5, 0.0))  # 60 deg round: only snapshots within reid_max_view_deg compare
+    assert atlas.match(far, _pixels(far, pts[:5]), desc[:5], ones, set()) == {}
+
+
+def test_atlas_ratio_test_and_one_track_per_landmark():
+    atlas, pts, desc = _atlas()
+    pose = _look(0.0)
+    uv = _pixels(pose, pts[:1])
+    twin = LandmarkAtlas(K, np.eye(4), BackendConfig())
+    for j in (1, 2):  # two landmarks at the same pixel with the same descriptor: ambiguous
+        twin.set_position(j, pts[0] + 0.001 * j)
+    twin.remember(pose, np.array([1, 2]), np.repeat(desc[:1], 2, axis=0), np.ones(2, bool))
+    assert twin.match(pose, uv, desc[:1], np.ones(1, bool), set()) == {}
+    two = np.repeat(uv, 2, axis=0) + np.array([[0.0, 0.0], [2.0, 0.0]])  # two tracks claim one landmark
+    best_second = np.vstack([desc[:1], desc[:1] ^ np.uint8(1)])
+    assert atlas.match(pose, two, best_second, np.ones(2, bool), set()) == {0: 100}
+
+
+def test_atlas_keeps_a_few_snapshots_from_distinct_viewpoints():
+    atlas, pts, desc = _atlas()
+    for yaw in (2.0, 4.0):  # too close to the first view: no new snapshot
+        atlas.remember(_look(yaw), np.array([100]), desc[:1], np.ones(1, bool))
+    assert atlas.num_snapshots(100) == 1
+    for i in range(1, 12):
+        c = (np.sin(np.radians(12.0 * i)) * 1.0, -np.cos(np.radians(12.0 * i)) * 1.0, 0.0)
+        atlas.remember(_look(12.0 * i, c=c), np.array([100]), desc[:1], np.ones(1, bool))
+    assert atlas.num_snapshots(100) == 6  # bounded
