@@ -34,6 +34,7 @@ class Reidentification:
         self._alias_rev: dict[int, int] = {}  # landmark id -> track segment id
         self._reid_now: set[int] = set()  # landmarks re-identified at the current keyframe
         self.num_reidentified = 0
+        self.reid_events: list[tuple[int, int, np.ndarray]] = []  # (t_ns, landmark id, distorted pixel (2,))
         self._since_refresh = 0
         self._last_obs: dict[int, int] = {}  # landmark id -> last keyframe with a projection factor on it
         self._loops = gtsam.NonlinearFactorGraph()  # re-observations of old landmarks, waiting for the next flush
@@ -75,6 +76,7 @@ class Reidentification:
                     continue
                 self._loop_budget -= 1
             src = int(ids[new[row]])
+            self.reid_events.append((self.t_ns[k], lid, np.array(uv_distorted[new[row]], float)))
             self._alias[src], self._alias_rev[lid] = lid, src
             out[new[row]] = lid
             self._reid_now.add(lid)

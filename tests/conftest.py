@@ -34,7 +34,7 @@ def sim_capture(tmp_path_factory):
         if key not in cache:
             from vio.sim.api import simulate
 
-            out = tmp_path_factory.mktemp("sim") / f"{scenario}_{imu}_{seed}_{duration_s:g}"
+            out = tmp_path_factory.mktemp("sim") / f"{Path(scenario).stem}_{imu}_{seed}_{duration_s:g}"
             cache[key] = simulate(scenario, out, seed=seed, duration_s=duration_s, imu_grade=imu, images=images)
         return cache[key]
 

@@ -39,7 +39,7 @@ class TrackerConfig:
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_parallax_px: float = 12.0  # median track displacement since the last keyframe that makes a keyframe, px
+    min_parallax_px: float = 20.0  # median track displacement since the last keyframe that makes a keyframe, px
     min_survival: float = 0.7  # fraction of last keyframe's tracks still alive below which a keyframe is made
     max_interval_s: float = 0.2  # a keyframe at least this often, s
     min_interval_s: float = 0.05  # never closer than this, s
@@ -81,7 +81,7 @@ class BackendConfig:
     reid_refresh_keyframes: int = 10  # refresh the atlas' landmark positions from the smoother this often
     reid_defer_keyframes: int = 30  # a landmark unobserved this long is old: its re-observations are batched
     reid_max_age_keyframes: int = 0  # only landmarks observed within this many keyframes are candidates (0: all)
-    reid_max_loops: int = 10  # old landmarks re-identified per flush period at most (bounds the solver's cost)
+    reid_max_loops: int = 5  # old landmarks re-identified per flush period at most (bounds the solver's cost)
     reid_flush_keyframes: int = 10  # batched re-observations of old landmarks enter the smoother this often
     use_imu: bool = True  # false: projection factors only (backend/visual_only.py; scale unknown, Sim3 only)
 

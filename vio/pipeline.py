@@ -180,6 +180,7 @@ def run_capture(
         "num_zero_velocity_updates": est.num_still,
         "num_track_splits": est.num_splits,
         "num_reidentified": est.num_reidentified,
+        "num_loop_flushes": est.num_loop_flushes,
         "num_position_factors": est.anchor.num_factors if est.anchor is not None else 0,
         "span_s": span_s,
         "wall_time_s": wall,
