@@ -39,7 +39,7 @@ class TrackerConfig:
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_parallax_px: float = 20.0  # median track displacement since the last keyframe that makes a keyframe, px
+    min_parallax_px: float = 20.0  # median track displacement since the last keyframe that makes one, px (IMU-free: 12)
     min_survival: float = 0.7  # fraction of last keyframe's tracks still alive below which a keyframe is made
     max_interval_s: float = 0.2  # a keyframe at least this often, s
     min_interval_s: float = 0.05  # never closer than this, s
