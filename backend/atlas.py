@@ -65,9 +65,6 @@ class LandmarkAtlas:
     def __len__(self) -> int:
         return len(self.rows)
 
-    def position(self, j: int) -> np.ndarray:
-        return self._pos[self.rows[j]].copy()
-
     def num_snapshots(self, j: int) -> int:
         return len(self._slots[self.rows[j]]) if j in self.rows else 0
 
