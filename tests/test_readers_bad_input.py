@@ -13,10 +13,10 @@ from tests.conftest import ROOT
 from tests.rotation_capture import rotation_capture
 from tests.writers.phone import write_mars
 from tests.writers.ros import write_ros2
-from vio.capture import AslWriter
 from vio.errors import CalibrationError, CaptureError
 from vio.readers import open_capture
 from vio.readers.validate import gyro_scale_vs_gravity
+from vio.writers.asl import AslWriter
 
 
 @pytest.fixture(scope="module")

@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 
 from tests.rotation_capture import rotation_capture
 from tests.writers.phone import write_mars
-from vio.capture import AslWriter
 from vio.errors import VioError
 from vio.readers import open_capture
 from vio.readers.tables import ensure_increasing, read_table
+from vio.writers.asl import AslWriter
 
 PROFILE = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

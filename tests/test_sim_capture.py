@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 
 from tests.conftest import ROOT
-from vio.capture import AslWriter, read_asl
+from vio.capture import read_asl
 from vio.errors import CaptureError, SimulationError
 from vio.sim.api import load_scenario, simulate
 from vio.sim.render import Renderer, camera_poses
 from vio.sim.stl import read_stl
 from vio.trajio import Trajectory, write_tum
+from vio.writers.asl import AslWriter
 
 VIO = [sys.executable, "-m", "vio.cli"]
 

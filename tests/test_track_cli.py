@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from vio.capture import AslWriter
 from vio.records import CameraCalib
+from vio.writers.asl import AslWriter
 
 ROOT = Path(__file__).resolve().parents[1]
 STEP_PX = np.array([1.5, 0.75])  # image motion per frame

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,23 +18,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vio.atomic import write_text
 from vio.csvio import read_numeric_csv
 from vio.errors import CaptureError
-from vio.kalibr import camera_yaml_text, imu_yaml_text, read_camera_yaml, read_imu_yaml
+from vio.kalibr import read_camera_yaml, read_imu_yaml
 from vio.records import CameraCalib, FeatureTracks, Frame, GroundTruth, ImuCalib, ImuSeries
 
 log = logging.getLogger(__name__)
-
-IMU_HEADER = (
-    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
-    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
-)
-GT_HEADER = (
-    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
-    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
-    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
-)
 
 
 @dataclass
@@ -196,95 +183,3 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
     for w in warnings:
         cap.warn(w)
     return cap
-
-
-def encode_png(image: np.ndarray) -> bytes:
-    """Lossless PNG bytes of an image (parameters fixed, so the bytes are reproducible).
-
-    Huffman-only deflate: on noisy camera images it is faster and smaller than LZ77 matching at level 1.
-    """
-    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
-    ok, buf = cv2.imencode(".png", image, params)
-    if not ok:
-        raise CaptureError("PNG encoding failed")
-    return buf.tobytes()
-
-
-class AslWriter:
-    """Writes an ASL capture into a temporary folder and renames it into place on `close()`.
-
-    A capture that fails half-way never appears under the target name.
-    """
-
-    def __init__(self, root: str | os.PathLike[str], overwrite: bool = False) -> None:
-        self.root = Path(root)
-        if self.root.exists() and not overwrite and any(self.root.iterdir()):
-            raise CaptureError("output folder exists and is not empty (use --force to replace it)", self.root)
-        self.root.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.", dir=self.root.parent))
-        self.mav0 = self.tmp / "mav0"
-        (self.mav0 / "cam0" / "data").mkdir(parents=True)
-        (self.mav0 / "imu0").mkdir(parents=True)
-        self._frames: list[int] = []
-        self._closed = False
-
-    @property
-    def scene_dir(self) -> Path:
-        d = self.tmp / "scene"
-        d.mkdir(exist_ok=True)
-        return d
-
-    def write_camera(self, cam: CameraCalib, comment: str = "vio camera") -> None:
-        write_text(self.mav0 / "cam0" / "sensor.yaml", camera_yaml_text(cam, comment))
-
-    def write_imu(self, calib: ImuCalib, imu: ImuSeries, comment: str = "vio imu") -> None:
-        write_text(self.mav0 / "imu0" / "sensor.yaml", imu_yaml_text(calib, comment))
-        lines = [IMU_HEADER]
-        for t, w, a in zip(imu.t_ns, imu.gyro, imu.acc, strict=True):
-            lines.append(f"{int(t)}," + ",".join(f"{x:.9g}" for x in (*w, *a)))
-        write_text(self.mav0 / "imu0" / "data.csv", "\n".join(lines) + "\n")
-
-    def add_frame(self, t_ns: int, image: np.ndarray) -> None:
-        """Write one image as `<t_ns>.png` (lossless; PNG compression level fixed for determinism)."""
-        if self._frames and t_ns <= self._frames[-1]:
-            raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
-        self.add_png(t_ns, encode_png(image))
-
-    def add_png(self, t_ns: int, png: bytes) -> None:
-        """Write one already encoded PNG image as `<t_ns>.png` (e.g. encoded in a worker process)."""
-        if self._frames and t_ns <= self._frames[-1]:
-            raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
-        (self.mav0 / "cam0" / "data" / f"{int(t_ns)}.png").write_bytes(png)
-        self._frames.append(int(t_ns))
-
-    def write_groundtruth(self, gt: GroundTruth) -> None:
-        d = self.mav0 / "state_groundtruth_estimate0"
-        d.mkdir(exist_ok=True)
-        lines = [GT_HEADER]
-        for i in range(len(gt)):
-            vals = (*gt.p_world[i], *gt.q_wxyz[i], *gt.v_world[i], *gt.b_w[i], *gt.b_a[i])
-            lines.append(f"{int(gt.t_ns[i])}," + ",".join(f"{x:.12g}" for x in vals))
-        write_text(d / "data.csv", "\n".join(lines) + "\n")
-        write_text(d / "sensor.yaml", "%YAML:1.0\nsensor_type: visual-inertial\ncomment: ground truth\n")
-
-    def close(self) -> Path:
-        lines = ["#timestamp [ns],filename"] + [f"{t},{t}.png" for t in self._frames]
-        write_text(self.mav0 / "cam0" / "data.csv", "\n".join(lines) + "\n")
-        if self.root.exists():
-            shutil.rmtree(self.root)
-        os.replace(self.tmp, self.root)
-        self._closed = True
-        return self.root
-
-    def abort(self) -> None:
-        if not self._closed:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-
-    def __enter__(self) -> AslWriter:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from vio.capture import AslWriter
 from vio.errors import SimulationError
 from vio.records import CameraCalib, ImuCalib
 from vio.sim import rig, scenarios
@@ -21,6 +20,7 @@ from vio.sim.definitions import read_definition
 from vio.sim.imu import grade_by_name, imu_calib, simulate_imu
 from vio.sim.scene import Scene
 from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
+from vio.writers.asl import AslWriter
 
 log = logging.getLogger(__name__)
 

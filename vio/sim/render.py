@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from vio.capture import encode_png
 from vio.records import CameraCalib
 from vio.sim.scene import Scene
+from vio.writers.asl import encode_png
 
 if TYPE_CHECKING:
     from vio.sim.api import Scenario

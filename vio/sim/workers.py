@@ -77,8 +77,8 @@ def render_in_workers(
 def main() -> int:
     import cv2
 
-    from vio.capture import encode_png
     from vio.sim.render import Renderer
+    from vio.writers.asl import encode_png
 
     cv2.setNumThreads(1)
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer

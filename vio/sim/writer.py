@@ -9,9 +9,9 @@ import numpy as np
 import yaml
 
 from vio.atomic import write_text
-from vio.capture import AslWriter
 from vio.records import GroundTruth, ImuSeries
 from vio.sim.stl import write_stl
+from vio.writers.asl import AslWriter
 
 if TYPE_CHECKING:
     from vio.sim.api import Scenario

@@ -1,0 +1,1 @@
+"""Capture writers (the ASL layout the simulator and the tests write)."""
