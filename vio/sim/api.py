@@ -8,46 +8,24 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from vio.errors import SimulationError
-from vio.records import CameraCalib, ImuCalib
 from vio.sim import rig, scenarios
 from vio.sim.definitions import read_definition
 from vio.sim.imu import grade_by_name, imu_calib, simulate_imu
+from vio.sim.scenario import Scenario
 from vio.sim.scene import Scene
 from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
+from vio.sim.writer import write_capture
 from vio.writers.asl import AslWriter
 
 log = logging.getLogger(__name__)
 
 BUILTIN = ("orbit", "figure8", "room")
 DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0}
-
-
-@dataclass(frozen=True)
-class Scenario:
-    """Everything that defines a simulated capture except the measurement noise draws."""
-
-    name: str  # "orbit", "figure8", "room", or the trajectory file path
-    seed: int
-    trajectory: Trajectory  # body (IMU) motion; `.sample(t_s)` with t_s in s since t0_ns
-    scene: Scene
-    camera: CameraCalib
-    imu_calib: ImuCalib
-    imu_grade: str
-    t0_ns: int  # time of t_s = 0, ns
-    duration_s: float
-    camera_rate_hz: float
-    imu_rate_hz: float
-
-    def frame_times_ns(self) -> np.ndarray:
-        """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples)."""
-        n = int(np.floor(self.duration_s * self.camera_rate_hz + 1e-9))
-        return np.int64(self.t0_ns) + np.round(np.arange(n) * (1e9 / self.camera_rate_hz)).astype(np.int64)
 
 
 def _streams(seed: int) -> list[np.random.SeedSequence]:
@@ -152,8 +130,6 @@ def simulate(
     `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
     `workers` render processes (default: 2, or 1 for short captures).
     """
-    from vio.sim.writer import write_capture
-
     sc = load_scenario(scenario, seed=seed, duration_s=duration_s, imu_grade_name=imu_grade)
     _, ss_imu, ss_img, _ = _streams(seed)
     imu, gt = simulate_imu(

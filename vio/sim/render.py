@@ -10,7 +10,6 @@ Seeded Gaussian pixel noise (1.5 DN) is added per frame.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import cv2
@@ -18,11 +17,10 @@ import numpy as np
 
 from vio.records import CameraCalib
 from vio.sim.scene import Scene
-from vio.writers.asl import encode_png
+from vio.sim.textures import build_atlas, scene_textures
 
 if TYPE_CHECKING:
-    from vio.sim.api import Scenario
-from vio.sim.textures import build_atlas, scene_textures
+    from vio.sim.scenario import Scenario
 
 NOISE_DN = 1.5  # pixel noise standard deviation, grey levels
 # Sub-sample offsets (px) of boundary pixels: 8 rooks (every row and column once), so edges of any slope are
@@ -269,25 +267,3 @@ def camera_poses(sc: Scenario, t_ns: np.ndarray) -> np.ndarray:
     world_T_body[:, :3, :3] = R
     world_T_body[:, :3, 3] = p
     return world_T_body @ sc.camera.body_T_cam
-
-
-def render_pngs(
-    sc: Scenario, t_ns: np.ndarray, image_seed: np.random.SeedSequence, workers: int | None = None
-) -> Iterator[bytes]:
-    """Yield the PNG bytes of each frame in order; frame i's noise comes from image_seed.spawn(F)[i].
-
-    Frames are rendered by `workers` processes (default 2 when there are 40+ frames, see `vio.sim.workers`);
-    the bytes do not depend on the number of workers.
-    """
-    poses = camera_poses(sc, t_ns)
-    jobs = list(zip(poses, image_seed.spawn(len(t_ns)), strict=True))
-    if workers is None:
-        workers = 2 if len(jobs) >= 40 else 1
-    if workers <= 1:
-        renderer = Renderer(sc.scene, sc.camera)
-        for world_T_cam, seq in jobs:
-            yield encode_png(renderer.render(world_T_cam, np.random.default_rng(seq)))
-        return
-    from vio.sim.workers import render_in_workers
-
-    yield from render_in_workers(sc.scene, sc.camera, jobs, workers)

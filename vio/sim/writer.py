@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Iterator
 
 import numpy as np
 import yaml
 
 from vio.atomic import write_text
 from vio.records import GroundTruth, ImuSeries
+from vio.sim.render import Renderer, camera_poses
+from vio.sim.scenario import Scenario
 from vio.sim.stl import write_stl
-from vio.writers.asl import AslWriter
-
-if TYPE_CHECKING:
-    from vio.sim.api import Scenario
+from vio.sim.workers import render_in_workers
+from vio.writers.asl import AslWriter, encode_png
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ def write_capture(
     image_seed: np.random.SeedSequence,
     workers: int | None = None,
 ) -> None:
-    """Write every file of the capture for scenario `sc` (a `vio.sim.api.Scenario`) into `writer`."""
+    """Write every file of the capture for scenario `sc` into `writer`."""
     comment = f"vio simulator ({sc.name}, seed {sc.seed})"
     writer.write_camera(sc.camera, comment)
     writer.write_imu(sc.imu_calib, imu, f"vio simulator ({sc.name}, seed {sc.seed}, {sc.imu_grade} IMU)")
@@ -68,8 +68,26 @@ def write_capture(
     write_text(writer.scene_dir / "scene.yaml", scene_yaml_text(sc))
     if not images:
         return
-    from vio.sim.render import render_pngs
-
     t_ns = sc.frame_times_ns()
     for t, png in zip(t_ns, render_pngs(sc, t_ns, image_seed, workers), strict=True):
         writer.add_png(int(t), png)
+
+
+def render_pngs(
+    sc: Scenario, t_ns: np.ndarray, image_seed: np.random.SeedSequence, workers: int | None = None
+) -> Iterator[bytes]:
+    """Yield the PNG bytes of each frame in order; frame i's noise comes from image_seed.spawn(F)[i].
+
+    Frames are rendered in this process or by `workers` processes (default 2 when there are 40+ frames, see
+    `vio.sim.workers`); the bytes do not depend on the number of workers.
+    """
+    poses = camera_poses(sc, t_ns)
+    jobs = list(zip(poses, image_seed.spawn(len(t_ns)), strict=True))
+    if workers is None:
+        workers = 2 if len(jobs) >= 40 else 1
+    if workers <= 1:
+        renderer = Renderer(sc.scene, sc.camera)
+        for world_T_cam, seq in jobs:
+            yield encode_png(renderer.render(world_T_cam, np.random.default_rng(seq)))
+        return
+    yield from render_in_workers(sc.scene, sc.camera, jobs, workers)

@@ -1,0 +1,38 @@
+"""The `Scenario` record: everything that defines a simulated capture except the measurement noise draws.
+
+It sits at the bottom of the simulator: `vio.sim.api.load_scenario` builds it, and the renderer and the capture
+writer read it. Times are integer ns (`t0_ns`) plus float seconds since t0 for the trajectory; poses are body
+(IMU) in world, world z up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vio.records import CameraCalib, ImuCalib
+from vio.sim.scene import Scene
+from vio.sim.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything that defines a simulated capture except the measurement noise draws."""
+
+    name: str  # "orbit", "figure8", "room", or the trajectory file path
+    seed: int
+    trajectory: Trajectory  # body (IMU) motion; `.sample(t_s)` with t_s in s since t0_ns
+    scene: Scene
+    camera: CameraCalib
+    imu_calib: ImuCalib
+    imu_grade: str
+    t0_ns: int  # time of t_s = 0, ns
+    duration_s: float
+    camera_rate_hz: float
+    imu_rate_hz: float
+
+    def frame_times_ns(self) -> np.ndarray:
+        """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples)."""
+        n = int(np.floor(self.duration_s * self.camera_rate_hz + 1e-9))
+        return np.int64(self.t0_ns) + np.round(np.arange(n) * (1e9 / self.camera_rate_hz)).astype(np.int64)
