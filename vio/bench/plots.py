@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vio.atomic import write_bytes  # noqa: E402
-from vio.bench.report import _method_rank, headline_key  # noqa: E402
+from vio.bench.ranking import headline_key, method_rank  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ def _traces(out: Path, case_key: str) -> dict[str, np.ndarray]:
             found[method] = _read_trace(p)
         except (OSError, ValueError) as exc:
             log.warning("bench plots: cannot read %s: %s", p, exc)
-    return dict(sorted(found.items(), key=lambda kv: _method_rank(kv[0])))
+    return dict(sorted(found.items(), key=lambda kv: method_rank(kv[0])))
 
 
 def _grid(n: int) -> tuple[plt.Figure, np.ndarray]:
@@ -110,7 +110,7 @@ def plot_error_distribution(rows: list[dict[str, Any]], path: Path) -> None:
     imus = sorted({r["imu"] for r in rows})
     fig, axes = plt.subplots(1, max(len(imus), 1), figsize=(6 * max(len(imus), 1), 4.5), squeeze=False)
     for ax, imu in zip(axes.flat, imus, strict=False):
-        methods = sorted({r["method"] for r in rows if r["imu"] == imu}, key=_method_rank)
+        methods = sorted({r["method"] for r in rows if r["imu"] == imu}, key=method_rank)
         data, labels = [], []
         for m in methods:
             key = headline_key(m)

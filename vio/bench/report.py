@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from vio.atomic import write_json, write_text
+from vio.bench.ranking import headline_key, method_rank
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +39,6 @@ ROW_KEYS = (
     "peak_rss_mb",
 )
 METRIC_KEYS = ROW_KEYS[4:]
-METHOD_ORDER = ("vio", "batch", "vio_lag3s", "vision_only", "imu_only")
 
 
 def empty_row(case: Any, method: str) -> dict[str, Any]:
@@ -56,10 +56,6 @@ def _clean(v: Any) -> Any:
 def _median(values: list[Any]) -> float | None:
     vals = [v for v in values if v is not None and math.isfinite(v)]
     return statistics.median(vals) if vals else None
-
-
-def _method_rank(m: str) -> tuple[int, str]:
-    return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m)
 
 
 def _fmt(v: float | None, key: str) -> str:
@@ -82,7 +78,7 @@ def median_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for r in rows:
         groups[(str(r["scenario"]), str(r["imu"]), str(r["method"]))].append(r)
     out = []
-    for (scen, imu, meth), rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], _method_rank(kv[0][2]))):
+    for (scen, imu, meth), rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], method_rank(kv[0][2]))):
         ok = [r for r in rs if "error" not in r]
         entry: dict[str, Any] = {
             "scenario": scen,
@@ -96,18 +92,13 @@ def median_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def headline_key(method: str) -> str:
-    """The ATE that is meaningful for a method: SE3, or Sim3 for vision_only (no metric scale)."""
-    return "ate_sim3_m" if method == "vision_only" else "ate_se3_m"
-
-
 def overall_medians(rows: list[dict[str, Any]], key: str | None = None) -> dict[str, float | None]:
     """Median of `key` (default: each method's headline ATE) per method over all successful runs."""
     by: dict[str, list[Any]] = defaultdict(list)
     for r in rows:
         if "error" not in r:
             by[str(r["method"])].append(r.get(key or headline_key(str(r["method"]))))
-    return {m: _median(v) for m, v in sorted(by.items(), key=lambda kv: _method_rank(kv[0]))}
+    return {m: _median(v) for m, v in sorted(by.items(), key=lambda kv: method_rank(kv[0]))}
 
 
 def paired_ratio(rows: list[dict[str, Any]], num: str, den: str, key: str = "ate_se3_m") -> float | None:
@@ -210,7 +201,7 @@ def rpe_markdown(rpe: list[dict[str, Any]]) -> str:
         f"| IMU | method | {head} |",
         "|---|---|" + "---:|" * len(lengths),
     ]
-    for (imu, meth), by_len in sorted(groups.items(), key=lambda kv: (kv[0][0], _method_rank(kv[0][1]))):
+    for (imu, meth), by_len in sorted(groups.items(), key=lambda kv: (kv[0][0], method_rank(kv[0][1]))):
         cells = []
         for x in lengths:
             t = _median([r["trans_mean_m"] for r in by_len.get(x, [])])
