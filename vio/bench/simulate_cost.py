@@ -1,9 +1,10 @@
-"""Speed benchmark of `vio simulate`: wall time, CPU time and peak memory of the whole process tree.
+"""Cost of `vio simulate`: wall time, CPU time and peak memory of the whole process tree.
 
-`/usr/bin/time -v` only sees the main process (the render workers are children of multiprocessing's fork
-server), so this samples /proc every 0.1 s for the command and all its descendants.
+`/usr/bin/time -v` reports the peak memory of the largest single process, not of the tree (frames are rendered in
+worker processes, `vio.sim.workers`), so this samples /proc every 0.1 s for the command and all its descendants.
+CPU in seconds, memory in MiB (`peak_rss_mb`, summed over the tree).
 
-    .venv/bin/python -m vio.sim.bench --out /tmp/o60 -- orbit --duration 60
+    .venv/bin/python -m vio.bench.simulate_cost --out /tmp/o60 -- orbit --duration 60
 """
 
 from __future__ import annotations
