@@ -24,7 +24,7 @@ from conftest import shared_path  # noqa: E402
 from vio.capture import Capture, read_asl  # noqa: E402
 from vio.records import StateEstimate  # noqa: E402
 
-RERUN = ROOT / ".venv" / "bin" / "rerun"
+RERUN = Path(sys.executable).parent / "rerun"  # installed beside the interpreter running the tests
 KEYFRAME_EVERY = 3  # frames
 N_FRAMES = 40
 EST_WORLD_T_GT_WORLD = np.array(  # yaw 40 deg and an offset: the estimate's world is not the ground truth's
@@ -112,7 +112,7 @@ def capture(request, sim_capture) -> Capture:
 
 @pytest.fixture(scope="module")
 def recording(capture, tmp_path_factory) -> Path:
-    from vio.viz import make_rerun_sink
+    from vio.viz.rerun_sink import make_rerun_sink
 
     rrd = tmp_path_factory.mktemp("viz") / "run.rrd"
     sink = make_rerun_sink(rrd=rrd)
@@ -143,7 +143,7 @@ def chunk_summary(rrd: Path) -> dict[tuple[str, str], int]:
 
 
 def test_rrd_holds_every_archetype(recording, capture):
-    from vio import viz_blueprint as bp
+    from vio.viz import blueprint as bp
 
     rows = chunk_summary(recording)
     archetypes = {arch for _, arch in rows}
@@ -168,7 +168,7 @@ def read_column(rrd: Path, entity: str, column: str) -> list:
     """All rows of one component column of one entity in the recording, ordered by sensor time (static first)."""
     from rerun.chunk import RrdReader
 
-    from vio import viz_blueprint as bp
+    from vio.viz import blueprint as bp
 
     rows = []
     for chunk in RrdReader(rrd).stream():
@@ -182,7 +182,7 @@ def read_column(rrd: Path, entity: str, column: str) -> list:
 
 
 def test_ground_truth_is_drawn_in_the_estimates_world(recording, capture):
-    from vio import viz_blueprint as bp
+    from vio.viz import blueprint as bp
 
     (gt_strip,) = read_column(recording, bp.TRAJ_GT, "LineStrips3D:strips")
     T = EST_WORLD_T_GT_WORLD
@@ -195,7 +195,7 @@ def test_ground_truth_is_drawn_in_the_estimates_world(recording, capture):
 
 
 def test_reprojection_error_is_computed_from_the_landmarks(recording):
-    from vio import viz_blueprint as bp
+    from vio.viz import blueprint as bp
 
     values = [v[0] for v in read_column(recording, bp.REPROJ_PX, "Scalars:scalars")]
     assert len(values) == -(-N_FRAMES // KEYFRAME_EVERY)
@@ -214,7 +214,7 @@ def test_default_blueprint_is_in_the_recording(recording):
 def test_feature_colours_follow_track_age():
     import cv2
 
-    from vio.viz import AGE_SATURATION_FRAMES, _colormap
+    from vio.viz.rerun_sink import AGE_SATURATION_FRAMES, _colormap
 
     ages = np.array([0, AGE_SATURATION_FRAMES // 2, AGE_SATURATION_FRAMES, 10 * AGE_SATURATION_FRAMES])
     rgb = _colormap(ages, 0.0, AGE_SATURATION_FRAMES, cv2.COLORMAP_VIRIDIS)
@@ -234,7 +234,7 @@ def _listening(pid: int) -> list[tuple[str, int]]:
 def test_serve_binds_only_loopback(sim_capture):
     import urllib.request
 
-    from vio.viz import make_rerun_sink
+    from vio.viz.rerun_sink import make_rerun_sink
 
     sink = make_rerun_sink(serve=True)
     viewer = sink.viewer
@@ -261,7 +261,7 @@ def test_web_server_stops_with_the_process(end):
     if end == "sigkill" and not sys.platform.startswith("linux"):
         pytest.skip("dying with the parent relies on Linux prctl(PR_SET_PDEATHSIG)")
     code = (
-        "import os, signal, sys; from vio.viz import make_rerun_sink; s = make_rerun_sink(serve=True); "
+        "import os, signal, sys; from vio.viz.rerun_sink import make_rerun_sink; s = make_rerun_sink(serve=True); "
         "print(s.viewer.pid, flush=True); " + ("s.close()" if end == "exit" else "os.kill(os.getpid(), signal.SIGKILL)")
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
@@ -280,7 +280,7 @@ def test_web_server_stops_with_the_process(end):
 
 def test_spawn_without_display_is_one_clear_error(monkeypatch, tmp_path):
     from vio.errors import VioError
-    from vio.viz import make_rerun_sink
+    from vio.viz.rerun_sink import make_rerun_sink
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
@@ -290,7 +290,7 @@ def test_spawn_without_display_is_one_clear_error(monkeypatch, tmp_path):
 
 
 def test_recording_survives_a_viewer_that_went_away(sim_capture, tmp_path):
-    from vio.viz import make_rerun_sink
+    from vio.viz.rerun_sink import make_rerun_sink
 
     rrd = tmp_path / "both.rrd"
     sink = make_rerun_sink(rrd=rrd, serve=True)
@@ -314,7 +314,7 @@ def bench(capture_dir: str, repeats: int = 5) -> None:
     (all threads, so rerun's encoder and file writer count) of feeding the capture with the sink over without it."""
     import tempfile
 
-    from vio.viz import make_rerun_sink
+    from vio.viz.rerun_sink import make_rerun_sink
 
     capture = read_asl(capture_dir)
     frames = [f.image for f in capture.frames()]  # decode once so PNG reading is not part of any figure

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vio.records import CameraCalib
-from vio.viz_geometry import anchor_yaw_translation, reprojection_errors_px
+from vio.viz.geometry import anchor_yaw_translation, reprojection_errors_px
 
 
 def _pose(rotvec, t) -> np.ndarray:

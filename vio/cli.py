@@ -47,7 +47,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.overrides)
     if args.serve:  # the viewer's address (and serving until Ctrl-C) must reach the user
-        logging.getLogger("vio.viz").setLevel(logging.INFO)
+        logging.getLogger("vio.viz.rerun_sink").setLevel(logging.INFO)
     run_capture(
         args.capture,
         args.out,

@@ -115,7 +115,7 @@ def run_capture(
     refine = cfg.run.refine if refine is None else bool(refine)
     sink = None
     if rrd or serve or spawn:
-        from vio.viz import make_rerun_sink
+        from vio.viz.rerun_sink import make_rerun_sink
 
         sink = make_rerun_sink(rrd=rrd, serve=serve, spawn=spawn, port=port)
         sink.on_start(cap.camera, cap.imu, cap.ground_truth)

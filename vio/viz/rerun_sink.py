@@ -1,4 +1,4 @@
-"""The rerun viewer sink: the one module (with vio.viz_blueprint) that imports rerun. The estimator never draws.
+"""The rerun viewer sink: logs what the pipeline reports to rerun. The estimator never draws.
 
 `make_rerun_sink(rrd=..., serve=..., spawn=...)` returns a `RerunSink` (a `vio.sinks.EstimateSink`) that logs on the
 `sensor_time` timeline: the camera (Pinhole + world_T_cam), the current image (downscaled JPEG) with its tracked
@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 import rerun as rr
 
-from vio import viz_blueprint as bp
 from vio.atomic import ensure_dir
 from vio.errors import VioError
 from vio.records import CameraCalib, Frame, GroundTruth, ImuSeries, StateEstimate
-from vio.viz_geometry import anchor_yaw_translation, reprojection_errors_px
-from vio.viz_server import ViewerProcess, start_viewer_process
+from vio.viz import blueprint as bp
+from vio.viz.geometry import anchor_yaw_translation, reprojection_errors_px
+from vio.viz.server import ViewerProcess, start_viewer_process
 
 log = logging.getLogger(__name__)
 

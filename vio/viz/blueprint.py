@@ -1,4 +1,4 @@
-"""Entity paths, the timeline name and the default rerun viewer layout. Only vio.viz and this module import rerun.
+"""Entity paths, the timeline name and the default rerun viewer layout (rerun is imported in `vio.viz` only).
 
 Entity tree (world is z-up; the camera frame is OpenCV's x right, y down, z forward):
   world                          ViewCoordinates RIGHT_HAND_Z_UP (static)
