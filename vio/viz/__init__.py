@@ -8,3 +8,5 @@ Modules (import the one you need; this file imports nothing, so `vio.viz.geometr
   geometry    numbers shown beside the estimate (pure numpy): the ground truth anchored in the estimate's world,
               reprojection errors in px
 """
+
+from __future__ import annotations
