@@ -10,7 +10,15 @@ known_T_est so that trajectory and landmarks come out in the positions' frame.
 
 from __future__ import annotations
 
+import logging
+
+import gtsam
 import numpy as np
+
+from backend import factors as fb
+from backend.keys import X
+
+log = logging.getLogger(__name__)
 
 KnownPosition = tuple[int, np.ndarray, float]  # (t_ns, p_world (3,) m in the known frame, sigma m)
 
@@ -69,3 +77,19 @@ class PositionAnchor:
         """A known position in the estimator's frame (after alignment)."""
         T = np.linalg.inv(self.known_T_est)
         return T[:3, :3] @ p_known + T[:3, 3]
+
+    def factors(self, k: int, t_ns: int, values: gtsam.Values) -> list[gtsam.NonlinearFactor]:
+        """GPS-like factors for keyframe k at t_ns: its matched known position, plus all earlier matches at the
+        keyframe where the alignment first succeeds (`values` holds the estimated poses)."""
+        matched = self.match(k, t_ns) is not None
+        p_est = {kk: values.atPose3(X(kk)).translation() for kk, _, _ in self.pairs if values.exists(X(kk))}
+        if self.try_align(p_est):
+            todo = [pair for pair in self.pairs if values.exists(X(pair[0]))]
+            log.info("known positions aligned (yaw + translation) after %d matches", len(todo))
+        elif self.known_T_est is not None and matched:
+            todo = self.pairs[-1:]
+        else:
+            return []
+        out = [fb.position_factor(kk, self.to_est(p), sigma) for kk, p, sigma in todo]
+        self.num_factors += len(out)
+        return out

@@ -5,12 +5,12 @@ landmark, the map is a chain of short tracks, and the unobservable directions of
 and position) drift along the chain. With it, a new track that is a landmark seen before (the next ring of an
 orbit, a corner revisited) observes the old landmark, and the graph closes the loop.
 
-Each landmark keeps up to `MAX_SNAPSHOTS` snapshots: a descriptor (frontend.descriptors, gravity-aligned) with
+Each landmark keeps up to `MAX_SNAPSHOTS` snapshots: a descriptor (gravity-aligned, from frontend.descriptors) with
 the unit viewing direction (landmark to camera, world frame) and depth of the view it came from; a snapshot is
 added when the viewing direction differs by more than `SNAPSHOT_SPACING_DEG` from all kept ones. A new track
-matches landmark j when, from the predicted pose, j projects within `reid_radius_px` of it, j's nearest snapshot
-was taken within `reid_max_view_deg` and a depth ratio of `MAX_DEPTH_RATIO`, the descriptor distance is at most
-`reid_max_hamming` bits and clearly better than the second candidate (`reid_ratio`), and no other track claims j.
+matches landmark j when, from the predicted pose, j projects within `radius_px` of it, j's nearest snapshot
+was taken within `max_view_deg` and a depth ratio of `MAX_DEPTH_RATIO`, the descriptor distance is at most
+`max_hamming` bits and clearly better than the second candidate (`ratio`), and no other track claims j.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from frontend.descriptors import DESCRIPTOR_BYTES, hamming
-from vio.config import BackendConfig
+from vio.config import ReidentificationConfig
+from vio.descriptors import DESCRIPTOR_BYTES, hamming
 
 MAX_SNAPSHOTS = 6
 SNAPSHOT_SPACING_DEG = 10.0
@@ -48,7 +48,7 @@ class LandmarkAtlas:
     viewing direction, depth), `MAX_SNAPSHOTS` slots per landmark at most.
     """
 
-    def __init__(self, K: np.ndarray, body_T_cam: np.ndarray, cfg: BackendConfig) -> None:
+    def __init__(self, K: np.ndarray, body_T_cam: np.ndarray, cfg: ReidentificationConfig) -> None:
         self.K = np.asarray(K, float)
         self.body_T_cam = np.asarray(body_T_cam, float)
         self.cfg = cfg
@@ -135,7 +135,7 @@ class LandmarkAtlas:
         srow = self._snap_row[:m]
         cos = np.einsum("ij,ij->i", self._snap_dir[:m], rays[srow])
         ratio = depth[srow] / self._snap_depth[:m]
-        ok = visible[srow] & (cos >= np.cos(np.radians(self.cfg.reid_max_view_deg)))
+        ok = visible[srow] & (cos >= np.cos(np.radians(self.cfg.max_view_deg)))
         ok &= (ratio >= 1.0 / MAX_DEPTH_RATIO) & (ratio <= MAX_DEPTH_RATIO)
         slots = np.flatnonzero(ok)
         if not len(slots):
@@ -166,7 +166,7 @@ class LandmarkAtlas:
         if not ids or not len(uv_px):
             return {}
         uv_px = np.asarray(uv_px, float).reshape(-1, 2)
-        near = np.linalg.norm(uv_px[:, None, :] - proj[None, :, :], axis=2) <= self.cfg.reid_radius_px
+        near = np.linalg.norm(uv_px[:, None, :] - proj[None, :, :], axis=2) <= self.cfg.radius_px
         near &= np.asarray(ok, bool)[:, None]
         rows = np.flatnonzero(near.any(axis=1))
         if not len(rows):
@@ -177,7 +177,7 @@ class LandmarkAtlas:
             order = np.argsort(drow, kind="stable")
             best = int(drow[order[0]])
             second = int(drow[order[1]]) if len(order) > 1 else 10_000
-            if best > self.cfg.reid_max_hamming or best >= self.cfg.reid_ratio * second:
+            if best > self.cfg.max_hamming or best >= self.cfg.ratio * second:
                 continue
             col = int(order[0])
             if col not in claims or best < claims[col][0]:

@@ -2,10 +2,12 @@
 
 Per keyframe k: a `CombinedImuFactor` from k-1 (preintegrated with the latest bias estimate), projection factors
 of admitted landmarks, newly admitted landmarks with all their views, and known-position factors. The first
-`init_window_s` of keyframes are buffered for initialisation (static or moving start, then a joint LM refinement
-of the window). A solver exception or a tracking loss does not end the run: the smoother is rebuilt from the last
-good state (priors on its pose, velocity and bias), landmarks re-enter through admission, and the event is
-recorded in `recoveries`.
+keyframes are buffered until a start succeeds (backend/initialisation/). A solver exception or a tracking loss
+does not end the run: the smoother is rebuilt from the last good state (backend/recovery.py).
+
+`VioEstimator` composes parts that share one `GraphState` passed to each explicitly: the landmark book and its
+admission, track segments, re-identification, the position anchor, recovery, and an initialiser. Each part gets
+its own config section.
 """
 
 from __future__ import annotations
@@ -20,16 +22,23 @@ import gtsam
 import numpy as np
 
 from backend import factors as fb
-from backend.anchoring import PositionAnchor
-from backend.initialisation import static_start
-from backend.keys import B, L, V, X
+from backend.admission import LandmarkAdmission
+from backend.anchoring import KnownPosition, PositionAnchor
+from backend.graph_state import GraphState
+from backend.initialisation.alignment import static_start
+from backend.initialisation.inertial import InertialInitialiser
+from backend.initialisation.visual import VisualInitialiser
+from backend.initialisation.window import Start
+from backend.keys import B, L, V, X, track_of
 from backend.landmarks import LandmarkBook
-from backend.reobserve import Describe, Reidentification
+from backend.recovery import Recovery
+from backend.reidentification import Reidentification
+from backend.segments import TrackSegments
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
-from backend.startup import WindowInitialiser
-from backend.visual_only import VisualOnly
+from backend.vision_only import VisionOnlyMotion
 from vio.config import BackendConfig
-from vio.records import CameraCalib, FeatureTracks, ImuSeries, StateEstimate
+from vio.descriptors import Describe
+from vio.records import CameraCalib, EstimatorStats, FeatureTracks, ImuSeries, LandmarkMap, StateEstimate
 
 log = logging.getLogger(__name__)
 
@@ -37,19 +46,7 @@ log = logging.getLogger(__name__)
 Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
 
 
-def _get(values: gtsam.Values, key: int) -> Any:
-    """The value of a key of any of the four kinds (X pose, V velocity, B bias, L point)."""
-    sym = chr(gtsam.Symbol(key).chr())
-    if sym == "x":
-        return values.atPose3(key)
-    if sym == "v":
-        return values.atVector(key)
-    if sym == "b":
-        return values.atConstantBias(key)
-    return values.atPoint3(key)
-
-
-class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
+class VioEstimator:
     """Tightly coupled visual-inertial smoothing. Feed keyframes with `add_keyframe`, then call `finish`."""
 
     def __init__(
@@ -58,161 +55,105 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
         imu: ImuSeries,
         preintegrate: Preintegrate,
         cfg: BackendConfig,
-        bias_sigma_acc: float = 0.1,
-        bias_sigma_gyro: float = 0.01,
-        positions: list[tuple[int, np.ndarray, float]] | None = None,
+        positions: list[KnownPosition] | None = None,
     ) -> None:
         self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
-        self.bias_sigma_acc, self.bias_sigma_gyro = bias_sigma_acc, bias_sigma_gyro
-        self.K, self.body_P_cam = fb.calibration(camera)
-        self.noise = fb.pixel_noise(cfg.pixel_sigma, cfg.huber_k)
-        self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg)
-        self.smoother = Smoother(cfg)
+        self.use_imu = cfg.use_imu
+        self.warnings: list[str] = []
+        self.state = GraphState(
+            Smoother(cfg.smoother),
+            fb.calibration(camera),
+            fb.pixel_noise(cfg.estimator.pixel_sigma, cfg.estimator.huber_k),
+            3 * max(cfg.landmarks.max_track_keyframes, 10),
+            self._warn,
+        )
+        self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg.landmarks)
+        self.admission = LandmarkAdmission(self.book, self.state, cfg.landmarks.prior_sigma_m)
+        self.segments = TrackSegments(cfg.landmarks.max_track_keyframes)
+        self.reid = Reidentification(
+            cfg.reidentification,
+            cfg.reidentification.enabled and self.use_imu,
+            self.book,
+            self.state,
+            camera.body_T_cam,
+        )
         max_dt = 0.5 / max(camera.rate_hz, 1.0)
         self.anchor = PositionAnchor(positions, max_dt) if positions else None
-        self.t_ns: dict[int, int] = {}  # keyframe index -> time
-        self.pending: list[int] = []  # keyframes waiting for initialisation
-        self.pims: dict[int, Any] = {}  # k -> preintegration from the keyframe before k
-        self.values = gtsam.Values()  # latest estimate of every variable ever added
-        self.all_factors = gtsam.NonlinearFactorGraph()  # every measurement factor + the initial priors (batch)
-        self.initialised = False
-        self.last_k: int | None = None
-        self.bias = gtsam.imuBias.ConstantBias()
+        self.recovery = Recovery(cfg.recovery, self.state)
+        self.vision = VisionOnlyMotion(cfg.vision_only, self.state, self.book)
+        if self.use_imu:
+            self.initialiser: InertialInitialiser | VisualInitialiser = InertialInitialiser(
+                cfg.initialisation,
+                self.state,
+                self.book,
+                self.admission,
+                imu,
+                camera,
+                cfg.estimator.pixel_sigma,
+                self.anchor,
+            )
+        else:
+            self.initialiser = VisualInitialiser(
+                cfg.vision_only,
+                self.state,
+                self.book,
+                self.admission,
+                cfg.estimator.pixel_sigma,
+                camera.fx,
+                cfg.landmarks,
+            )
+        self.init_kind = ""  # the start that succeeded: static | moving | visual
         self.timings_ms: list[float] = []
-        self.recoveries: list[dict[str, Any]] = []
-        self.warnings: list[str] = []
-        self.init_kind = ""
-        self.num_obs: dict[int, int] = {}  # track id -> projection factors in the graph
         self.num_still = 0  # keyframes with a zero-velocity update
-        self.num_splits = 0  # tracks that drifted off their landmark and became a new one
-        self._dirty = False  # True when the smoother holds estimates not yet pulled into `values`
-        self._segments: dict[int, tuple[int, int]] = {}  # track id -> (segment, views in the segment)
-        self._init_reid()
 
-    # ----------------------------------------------------------------- helpers
-    def _pose(self, k: int) -> np.ndarray:
-        return self.values.atPose3(X(k)).matrix()
-
-    def _window(self, k: int) -> range:
-        """Keyframes whose estimates are refreshed after each update and used to triangulate new landmarks."""
-        return range(max(k - 3 * max(self.cfg.max_track_keyframes, 10), 0), k + 1)
-
-    def _recent_keys(self, k: int) -> list[int]:
-        return [key for kk in self._window(k) for key in (X(kk), V(kk), B(kk)) if self.smoother.has(key)]
-
-    def _known_poses(self) -> dict[int, np.ndarray]:
-        return {k: self._pose(k) for k in self._window(self.last_k) if self.values.exists(X(k))}
-
-    def _sync(self) -> None:
-        """Pull the full smoother estimate (every keyframe and landmark) into `values`."""
-        if self._dirty:
-            try:
-                self._absorb(self.smoother.estimate())
-            except SolverFailure as exc:
-                self._warn(f"final estimate failed ({exc}); keeping the last per-keyframe estimates")
-            self._dirty = False
+    @property
+    def initialised(self) -> bool:
+        return bool(self.init_kind)
 
     def _warn(self, msg: str) -> None:
         log.warning(msg)
         self.warnings.append(msg)
 
-    def _state(self, k: int, solve_ms: float) -> StateEstimate:
-        if not self.cfg.use_imu:  # no velocity or bias keys
-            return StateEstimate(
-                k, self.t_ns[k], self._pose(k), np.zeros(3), np.zeros(3), np.zeros(3), solve_ms=solve_ms
-            )
-        b = self.values.atConstantBias(B(k))
-        return StateEstimate(
-            k,
-            self.t_ns[k],
-            self._pose(k),
-            np.asarray(self.values.atVector(V(k))),
-            b.gyroscope(),
-            b.accelerometer(),
-            solve_ms=solve_ms,
-        )
-
-    def _set(self, key: int, value: Any) -> None:
-        if self.values.exists(key):
-            self.values.update(key, value)
-        else:
-            self.values.insert(key, value)
-
-    def _absorb(self, est: gtsam.Values) -> None:
-        for key in est.keys():
-            self._set(key, _get(est, key))
-
-    def _position_factors(self, k: int) -> list[gtsam.NonlinearFactor]:
-        """GPS-like factors of known positions: keyframe k's match, plus all earlier matches on first alignment."""
-        if self.anchor is None:
-            return []
-        matched = self.anchor.match(k, self.t_ns[k]) is not None
-        if self.anchor.try_align(self._known_positions_est()):
-            todo = [pair for pair in self.anchor.pairs if self.values.exists(X(pair[0]))]
-            log.info("known positions aligned (yaw + translation) after %d matches", len(todo))
-        elif self.anchor.known_T_est is not None and matched:
-            todo = self.anchor.pairs[-1:]
-        else:
-            return []
-        out = [fb.position_factor(kk, self.anchor.to_est(p), sigma) for kk, p, sigma in todo]
-        self.anchor.num_factors += len(out)
-        return out
-
-    def _known_positions_est(self) -> dict[int, np.ndarray]:
-        return {
-            kk: self.values.atPose3(X(kk)).translation() for kk, _, _ in self.anchor.pairs if self.values.exists(X(kk))
-        }
-
     # ----------------------------------------------------------------- public
     def add_keyframe(self, t_ns: int, tracks: FeatureTracks, describe: Describe | None = None) -> list[StateEstimate]:
-        """Add a keyframe (tracks in distorted pixels); returns the estimates produced (several after init).
+        """Add a keyframe (tracks in distorted pixels); returns the estimates produced (several after the start).
 
         `describe` (frontend.descriptors.KeyframeDescriber.describe of the keyframe image) enables landmark
-        re-identification (backend/reobserve.py); without it every new track is a new landmark.
+        re-identification (backend/reidentification.py); without it every new track is a new landmark.
         """
-        k = 0 if self.last_k is None else self.last_k + 1
-        self.t_ns[k] = int(t_ns)
+        st = self.state
+        k = 0 if st.last_k is None else st.last_k + 1
+        st.t_ns[k] = int(t_ns)
         uv = fb.undistorted_px(self.camera, tracks.uv)
-        if self.last_k is not None and self.cfg.use_imu:
-            pre = self.preintegrate(self.t_ns[self.last_k], t_ns, self.bias)
-            self.pims[k] = pre.pim
+        if st.last_k is not None and self.use_imu:
+            pre = self.preintegrate(st.t_ns[st.last_k], t_ns, st.bias)
+            st.pims[k] = pre.pim
             if getattr(pre, "gap", False):
                 self._warn(f"IMU gap before keyframe {k} (t={t_ns} ns); its inertial factor is weak")
-        prev, self.last_k = self.last_k, k
-        ids = self._apply_aliases(self._segment_ids(tracks.ids))
+        prev, st.last_k = st.last_k, k
+        ids = self.reid.apply_aliases(self.segments.landmark_ids(tracks.ids))
         if self.initialised and describe is not None:
-            ids = self._reidentify(prev, k, ids, uv, tracks.uv, describe)
+            ids = self.reid.reidentify(prev, k, ids, uv, tracks.uv, describe)
         self.book.observe(k, ids, uv)
         if not self.initialised:
-            self.pending.append(k)
-            return self._try_initialise() if self.cfg.use_imu else self._vo_try_initialise()
+            start = self.initialiser.add(k)
+            return [] if start is None else self._started(start)
         return [self._step(prev, k, ids)]
 
-    def _segment_ids(self, track_ids: np.ndarray) -> np.ndarray:
-        """Landmark ids: the track id plus `segment << 40`. A new segment starts when a view disagrees with the
-        landmark (`_split_track`) or, optionally, every `max_track_keyframes` views.
-
-        KLT tracks drift by pixels over seconds (measured on the eqvio tracks against the EuRoC ground truth:
-        median 0.4 px within 10 frames, 3 px after 40), so one long track may become several landmarks.
-        """
-        n = self.cfg.max_track_keyframes
-        out = np.asarray(track_ids, np.int64).copy()
-        for i, j in enumerate(out.tolist()):
-            seg, count = self._segments.get(j, (0, 0))
-            if 0 < n <= count:
-                seg, count = seg + 1, 0
-            self._segments[j] = (seg, count + 1)
-            out[i] = j + (seg << 40)
-        return out
+    def _started(self, start: Start) -> list[StateEstimate]:
+        self.init_kind = start.kind
+        self.timings_ms.append(start.solve_ms)
+        return [self.state.state(k, start.solve_ms, self.use_imu) for k in start.keyframes]
 
     def finish(self, refine: bool = False) -> dict[str, Any]:
-        """Final estimate of all keyframes (and a batch LM refinement when asked); returns counts."""
+        """Final estimate of all keyframes (and a batch LM refinement when asked); returns what was done."""
         info: dict[str, Any] = {"refined": False}
-        self._sync()
+        st = self.state
+        st.sync()
         if refine and self.initialised:
             t0 = time.perf_counter()
             try:
-                self._absorb(batch_solve(self.all_factors, self.values))
+                st.absorb(batch_solve(st.all_factors, st.values))
                 info["refined"] = True
             except RuntimeError as exc:
                 self._warn(f"batch refinement failed ({first_line(exc)}); keeping the online estimate")
@@ -222,8 +163,9 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
     def states(self) -> list[StateEstimate]:
         """The current (smoothed) estimate of every initialised keyframe, in time order (in the known positions'
         frame when they were given and aligned)."""
-        self._sync()
-        out = [self._state(k, 0.0) for k in sorted(self.t_ns) if self.values.exists(X(k))]
+        st = self.state
+        st.sync()
+        out = [st.state(k, 0.0, self.use_imu) for k in sorted(st.t_ns) if st.values.exists(X(k))]
         T = self._output_T()
         if T is None:
             return out
@@ -232,155 +174,148 @@ class VioEstimator(WindowInitialiser, VisualOnly, Reidentification):
     def _output_T(self) -> np.ndarray | None:  # noqa: N802
         return None if self.anchor is None else self.anchor.known_T_est
 
-    def landmarks(self, sync: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(M,) track ids, (M, 3) world points (m), (M,) number of projection factors.
-
-        With `sync=False` the latest per-keyframe values are used as they are (cheap; for live display).
-        """
+    def landmarks(self, sync: bool = True) -> LandmarkMap:
+        """Every landmark in the graph. With `sync=False` the latest per-keyframe values are used as they are
+        (cheap; for live display)."""
+        st = self.state
         if sync:
-            self._sync()
-        ids = [j for j in sorted(self.num_obs) if self.values.exists(L(j))]
-        pts = np.array([self.values.atPoint3(L(j)) for j in ids]).reshape(-1, 3)
+            st.sync()
+        ids = np.asarray([j for j in sorted(st.num_obs) if st.values.exists(L(j))], np.int64)
+        pts = np.array([st.values.atPoint3(L(j)) for j in ids.tolist()]).reshape(-1, 3)
         T = self._output_T()
         if T is not None:
             pts = pts @ T[:3, :3].T + T[:3, 3]
-        return np.asarray(ids, np.int64), pts, np.array([self.num_obs[j] for j in ids], np.int64)
+        nobs = np.array([st.num_obs[j] for j in ids.tolist()], np.int64)
+        return LandmarkMap(ids, track_of(ids), pts, nobs)
+
+    def stats(self) -> EstimatorStats:
+        """Counts, timings and events of the run so far."""
+        return EstimatorStats(
+            initialisation=self.init_kind,
+            keyframe_ms=tuple(self.timings_ms),
+            num_zero_velocity_updates=self.num_still,
+            num_track_splits=self.segments.num_splits,
+            num_reidentified=self.reid.num_reidentified,
+            num_loop_flushes=self.reid.num_loop_flushes,
+            num_position_factors=self.anchor.num_factors if self.anchor is not None else 0,
+            recoveries=tuple(self.recovery.events),
+            reidentifications=tuple(self.reid.events),
+            warnings=tuple(self.warnings),
+        )
 
     # ----------------------------------------------------------------- steady state
-    def _add(self, graph: gtsam.NonlinearFactorGraph, factor: gtsam.NonlinearFactor) -> None:
-        graph.add(factor)
-        self.all_factors.add(factor)
-
-    def _add_projection(self, graph: gtsam.NonlinearFactorGraph, k: int, j: int, uv: np.ndarray) -> None:
-        self._add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.noise))
-        self.num_obs[j] = self.num_obs.get(j, 0) + 1
-        self._last_obs[j] = k
-
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
         t0 = time.perf_counter()
+        st = self.state
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        t_s = self.t_ns[k] * 1e-9
-        if self.cfg.use_imu:
-            pose_prev = self.values.atPose3(X(prev))
-            v_prev = self.values.atVector(V(prev))
-            nav = self.pims[k].predict(gtsam.NavState(pose_prev, v_prev), self.bias)
+        t_s = st.t_ns[k] * 1e-9
+        if self.use_imu:
+            nav = st.pims[k].predict(gtsam.NavState(st.values.atPose3(X(prev)), st.values.atVector(V(prev))), st.bias)
             pred = nav.pose()
             values.insert(V(k), nav.velocity())
-            values.insert(B(k), self.bias)
-            self._set(V(k), nav.velocity())
-            self._set(B(k), self.bias)
-            self._add(graph, fb.imu_factor(prev, k, self.pims[k]))
+            values.insert(B(k), st.bias)
+            st.set(V(k), nav.velocity())
+            st.set(B(k), st.bias)
+            st.add(graph, fb.imu_factor(prev, k, st.pims[k]))
             if self._is_still(prev, k, ids):
-                for f in fb.no_motion_factors(prev, k):
-                    self._add(graph, f)
+                zv = self.cfg.zero_velocity
+                for f in fb.no_motion_factors(prev, k, zv.sigma_rad, zv.sigma_m, zv.velocity_sigma):
+                    st.add(graph, f)
                 self.num_still += 1
             stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
         else:
-            pred = gtsam.Pose3(self._vo_predict(prev, k, ids))
-            self._add(graph, self._vo_motion_prior(prev, k))
+            pred = gtsam.Pose3(self.vision.predict(prev, k, ids))
+            st.add(graph, self.vision.motion_prior(prev, k))
             stamps = {X(k): t_s}
         values.insert(X(k), pred)
-        self._set(X(k), pred)
-        for f in self._position_factors(k):
-            self._add(graph, f)
+        st.set(X(k), pred)
+        if self.anchor is not None:
+            for f in self.anchor.factors(k, st.t_ns[k], st.values):
+                st.add(graph, f)
+        self._observe_landmarks(k, ids, pred.matrix(), graph, values, stamps, t_s)
+        self.reid.flush(graph, k)
+        try:
+            st.smoother.update(graph, values, stamps)
+            est = st.smoother.estimate_keys(st.recent_keys(k))
+            st.dirty = True
+        except SolverFailure as exc:
+            est = self._recover(prev, k, str(exc))
+        st.absorb(est)
+        if self.use_imu:
+            st.bias = st.values.atConstantBias(B(k))
+        ms = (time.perf_counter() - t0) * 1e3
+        self.timings_ms.append(ms)
+        return st.state(k, ms, self.use_imu)
+
+    def _observe_landmarks(
+        self,
+        k: int,
+        ids: np.ndarray,
+        world_T_body: np.ndarray,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: dict[int, float],
+        t_s: float,
+    ) -> None:
+        """Keyframe k's views: projection factors on admitted landmarks that they agree with (a disagreeing view
+        starts a new track segment), and admission of the tracks that are now well triangulated."""
+        st, smoother = self.state, self.state.smoother
         poses = None
         for j in ids.tolist():
             tr = self.book.tracks[j]
             if tr.admitted:
-                gate = self.cfg.reid_radius_px if j in self._alias_rev else self.cfg.max_reprojection_px
-                if self.smoother.has(L(j)) and self._consistent(j, pred.matrix(), tr.views[k], gate):
-                    self._add_projection(self._loop_graph(graph, j, k), k, j, tr.views[k])
+                if not smoother.has(L(j)):
+                    continue
+                gate = self.reid.gate_px(j, self.cfg.landmarks.max_reprojection_px)
+                if self._consistent(j, world_T_body, tr.views[k], gate):
+                    st.add_projection(self.reid.route(graph, j, k), k, j, tr.views[k])
                     stamps[L(j)] = t_s
-                elif self.smoother.has(L(j)):
+                else:
                     self._split_track(j, k)
                 continue
-            if len(tr.views) < self.cfg.min_views:
+            if not self.admission.ready(j):
                 continue
-            poses = self._known_poses() if poses is None else poses
-            p = self.book.try_admit(j, poses)
-            if p is None:
-                continue
-            values.insert(L(j), p)
-            self._set(L(j), p)
-            self.atlas.set_position(j, p)
-            stamps[L(j)] = t_s
-            graph.add(fb.landmark_prior(j, p, self.cfg.landmark_prior_sigma_m))
-            for kk, uv in tr.views.items():
-                if kk in poses and self.smoother.has(X(kk)) or kk == k:
-                    self._add_projection(graph, kk, j, uv)
-            tr.admitted = True
-        self._flush_loops(graph, k)
-        try:
-            self.smoother.update(graph, values, stamps)
-            est = self.smoother.estimate_keys(self._recent_keys(k))
-            self._dirty = True
-        except SolverFailure as exc:
-            est = self._recover(prev, k, str(exc))
-        self._absorb(est)
-        if self.cfg.use_imu:
-            self.bias = self.values.atConstantBias(B(k))
-        ms = (time.perf_counter() - t0) * 1e3
-        self.timings_ms.append(ms)
-        return self._state(k, ms)
+            poses = st.known_poses() if poses is None else poses
+            p = self.admission.admit(j, poses, graph, values, k_now=k)
+            if p is not None:
+                st.set(L(j), p)
+                self.reid.on_admit(j, p)
+                stamps[L(j)] = t_s
 
     def _consistent(self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float) -> bool:
         """A new view of landmark j reprojects within `gate_px` from the predicted pose."""
-        p = self.smoother.estimate_keys([L(j)]).atPoint3(L(j))
+        p = self.state.smoother.estimate_keys([L(j)]).atPoint3(L(j))
         err, depth = self.book.reprojection_px(world_T_body, p, uv)
         return depth > 0.05 and err <= gate_px
 
     def _split_track(self, j: int, k: int) -> None:
         """Track drift: the view of keyframe k disagrees with landmark j, so it starts a new landmark."""
-        base = self._unalias(j)
-        seg, _ = self._segments.get(base, (j >> 40, 0))
-        new = base + ((seg + 1) << 40)
-        self._segments[base] = (seg + 1, 1)
+        new = self.segments.split(self.reid.unalias(j), j)
         uv = self.book.tracks[j].views.pop(k)
         self.book.observe(k, np.array([new]), uv[None])
-        self.num_splits += 1
 
     def _is_still(self, prev: int, k: int, ids: np.ndarray) -> bool:
-        """At rest between keyframes prev and k: the tracks shared with prev moved less than `still_max_px`
-        (median) and the IMU over the last `still_window_s` passes the static test (zero-velocity update)."""
-        if self.cfg.still_max_px <= 0:
+        """At rest between keyframes prev and k: the tracks shared with prev moved less than `max_flow_px`
+        (median) and the IMU over the last `window_s` passes the at-rest test (zero-velocity update)."""
+        zv = self.cfg.zero_velocity
+        if zv.max_flow_px <= 0:
             return False
         moved = [
             np.linalg.norm(tr.views[k] - tr.views[prev])
             for tr in (self.book.tracks[j] for j in ids.tolist())
             if prev in tr.views
         ]
-        if len(moved) < 5 or float(np.median(moved)) > self.cfg.still_max_px:
+        if len(moved) < 5 or float(np.median(moved)) > zv.max_flow_px:
             return False
-        t1 = self.t_ns[k]
-        return static_start(self.imu, t1 - int(self.cfg.still_window_s * 1e9), t1, self.cfg) is not None
+        t1 = self.state.t_ns[k]
+        return static_start(self.imu, t1 - int(zv.window_s * 1e9), t1, zv.max_gyro_std, zv.max_acc_std) is not None
 
     def _recover(self, prev: int, k: int, reason: str) -> gtsam.Values:
-        """Rebuild the smoother from the last good state (prev) plus keyframe k's inertial factor."""
-        self._warn(f"solver failed at keyframe {k} ({reason}); rebuilding from keyframe {prev}")
-        self.recoveries.append({"k": k, "t_ns": self.t_ns[k], "reason": reason, "restart_from_k": prev})
-        self.smoother.reset()
-        self._drop_loops()
+        """Rebuild the smoother from the last good state (prev) plus keyframe k's inertial factor or motion prior."""
+        st = self.state
+        self.recovery.record(prev, k, reason)
+        self.reid.drop_loops()
         self.book.forget_before(prev)
-        self.num_obs = {j: n for j, n in self.num_obs.items() if self.values.exists(L(j))}
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        graph.add(
-            gtsam.PriorFactorPose3(X(prev), self.values.atPose3(X(prev)), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3))
-        )
-        if self.cfg.use_imu:
-            graph.add(fb.velocity_prior(prev, self.values.atVector(V(prev)), 0.05))
-            graph.add(fb.bias_prior(prev, self.values.atConstantBias(B(prev)), 0.02, 1e-3))
-            graph.add(fb.imu_factor(prev, k, self.pims[k]))
-            keys = (X(prev), V(prev), B(prev), X(k), V(k), B(k))
-        else:
-            graph.add(self._vo_motion_prior(prev, k))
-            keys = (X(prev), X(k))
-        for key in keys:
-            values.insert(key, _get(self.values, key))
-        t_s = self.t_ns[k] * 1e-9
-        try:
-            self.smoother.update(graph, values, {key: t_s for key in values.keys()})
-            return self.smoother.estimate()
-        except SolverFailure as exc:  # keep the prediction; the next keyframe rebuilds again from here
-            self._warn(f"rebuild at keyframe {k} failed too ({exc}); keeping the inertial prediction")
-            self.smoother.reset()
-            return values
+        st.num_obs = {j: n for j, n in st.num_obs.items() if st.values.exists(L(j))}
+        bridge = fb.imu_factor(prev, k, st.pims[k]) if self.use_imu else self.vision.motion_prior(prev, k)
+        return self.recovery.rebuild(prev, k, bridge, self.use_imu)

@@ -82,12 +82,14 @@ def position_factor(k: int, p_world: np.ndarray, sigma_m: float) -> gtsam.GPSFac
     return gtsam.GPSFactor(X(k), np.asarray(p_world, float), gtsam.noiseModel.Isotropic.Sigma(3, sigma_m))
 
 
-def no_motion_factors(k0: int, k1: int, sigma_rad: float = 1e-3, sigma_m: float = 1e-3) -> list[gtsam.NonlinearFactor]:
+def no_motion_factors(
+    k0: int, k1: int, sigma_rad: float, sigma_m: float, velocity_sigma_m_s: float
+) -> list[gtsam.NonlinearFactor]:
     """Zero-velocity update: V(k1) = 0 and X(k0) == X(k1) (for keyframes detected at rest)."""
     between = gtsam.BetweenFactorPose3(
         X(k0), X(k1), gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_rad] * 3 + [sigma_m] * 3))
     )
-    return [between, velocity_prior(k1, np.zeros(3), 0.01)]
+    return [between, velocity_prior(k1, np.zeros(3), velocity_sigma_m_s)]
 
 
 def landmark_prior(j: int, p_world: np.ndarray, sigma_m: float) -> gtsam.PriorFactorPoint3:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vio.config import BackendConfig
+from vio.config import LandmarkConfig
 
 OUTLIER_FACTOR = 2.5  # a view reprojecting beyond this many times max_reprojection_px is an outlier
 
@@ -67,7 +67,7 @@ def parallax_deg(world_T_cam: np.ndarray, xn: np.ndarray) -> float:
 class LandmarkBook:
     """Observation buffer and admission test for all tracks."""
 
-    def __init__(self, K: np.ndarray, body_T_cam: np.ndarray, cfg: BackendConfig) -> None:
+    def __init__(self, K: np.ndarray, body_T_cam: np.ndarray, cfg: LandmarkConfig) -> None:
         self.K = np.asarray(K, float)
         self.K_inv = np.linalg.inv(self.K)
         self.body_T_cam = np.asarray(body_T_cam, float)

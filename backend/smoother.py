@@ -10,7 +10,7 @@ import logging
 
 import gtsam
 
-from vio.config import BackendConfig
+from vio.config import SmootherConfig
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +25,7 @@ def first_line(exc: BaseException) -> str:
     return " ".join(lines[:2]) if lines else type(exc).__name__
 
 
-def isam2_params(cfg: BackendConfig) -> gtsam.ISAM2Params:
+def isam2_params(cfg: SmootherConfig) -> gtsam.ISAM2Params:
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(cfg.relinearize_threshold)
     params.relinearizeSkip = int(cfg.relinearize_skip)
@@ -37,13 +37,13 @@ def isam2_params(cfg: BackendConfig) -> gtsam.ISAM2Params:
 
 
 class Smoother:
-    """iSAM2 (`cfg.smoother == "isam2"`) or an incremental fixed-lag smoother (`"fixed_lag"`, `cfg.lag_s`)."""
+    """iSAM2 (`cfg.kind == "isam2"`) or an incremental fixed-lag smoother (`"fixed_lag"`, `cfg.lag_s`)."""
 
-    def __init__(self, cfg: BackendConfig) -> None:
+    def __init__(self, cfg: SmootherConfig) -> None:
         self.cfg = cfg
-        self.kind = cfg.smoother
+        self.kind = cfg.kind
         if self.kind not in ("isam2", "fixed_lag"):
-            raise ValueError(f"backend.smoother must be isam2 or fixed_lag, got {cfg.smoother!r}")
+            raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
         self.reset()
 
     def reset(self) -> None:

@@ -17,10 +17,9 @@ import cv2
 import numpy as np
 
 from frontend.tracker import to_gray
+from vio.descriptors import DESCRIPTOR_BYTES
 
-DESCRIPTOR_BYTES = 32
 PATCH_PX = 31  # ORB's sampling pattern diameter, px
-_POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.int32)
 
 
 class KeyframeDescriber:
@@ -48,10 +47,3 @@ class KeyframeDescriber:
             rows = np.array([kp.class_id for kp in kept], np.int64)
             desc[rows], ok[rows] = out, True
         return desc, ok
-
-
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Bit distances between descriptor sets (N, 32) and (M, 32) uint8 -> (N, M) int32."""
-    a = np.asarray(a, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
-    b = np.asarray(b, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
-    return _POPCOUNT[a[:, None, :] ^ b[None, :, :]].sum(axis=2)

@@ -88,8 +88,8 @@ def test_moving_start_recovers_metric_trajectory(data):
     up = np.array([s.world_T_body[2, :3] for s in states])  # world z in body axes
     tilt = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", up, gt[idx, 2, :3]), -1, 1)))
     assert np.median(tilt) < 1.0
-    ids, pts, nobs = est.landmarks()
-    assert len(ids) > 100 and nobs.min() >= 3
+    lm = est.landmarks()
+    assert len(lm) > 100 and lm.num_obs.min() >= 3
 
 
 def test_online_estimate_close_to_batch(data):
@@ -114,7 +114,8 @@ def test_solver_failure_is_recovered(data, monkeypatch):
 
     monkeypatch.setattr(Smoother, "update", flaky)
     est = run_estimator(data)
-    assert len(est.recoveries) == 1 and est.recoveries[0]["reason"] == "injected failure"
+    recoveries = est.stats().recoveries
+    assert len(recoveries) == 1 and recoveries[0].reason == "injected failure"
     assert len(est.states()) >= len(data[5]) - 12
     assert all(np.isfinite(s.world_T_body).all() for s in est.states())
 

@@ -6,11 +6,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from backend.anchoring import fit_yaw_translation
-from backend.initialisation import rotation_to_z_up, static_start
+from backend.initialisation.alignment import rotation_to_z_up, static_start
 from backend.landmarks import LandmarkBook, triangulate
-from vio.config import BackendConfig
+from vio.config import InitialisationConfig, LandmarkConfig
 from vio.geometry import inv_T, make_T
 from vio.records import GRAVITY_M_S2, ImuSeries
+
+AT_REST = (InitialisationConfig().static_max_gyro, InitialisationConfig().static_max_acc_std)  # defaults
 
 
 def test_rotation_to_z_up():
@@ -35,7 +37,7 @@ def test_static_start_recovers_tilt_and_gyro_bias_despite_vibration():
     R = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix()
     bias = np.array([0.01, -0.02, 0.07])
     imu = _rest_imu(R, bias, vibration=0.25)  # white; EuRoC idling rotors: 1 m/s^2 raw but mostly high frequency
-    out = static_start(imu, 0, int(imu.t_ns[-1]), BackendConfig())
+    out = static_start(imu, 0, int(imu.t_ns[-1]), *AT_REST)
     assert out is not None
     world_R_body, b = out
     up_err = np.degrees(np.arccos(np.clip((world_R_body.T @ [0, 0, 1]) @ (R.T @ [0, 0, 1]), -1, 1)))
@@ -46,9 +48,9 @@ def test_static_start_rejects_motion():
     imu = _rest_imu(np.eye(3), np.zeros(3), vibration=0.01)
     t_s = imu.t_ns * 1e-9
     acc = imu.acc + np.column_stack([2.0 * np.sin(2 * np.pi * t_s), np.zeros_like(t_s), np.zeros_like(t_s)])
-    assert static_start(ImuSeries(imu.t_ns, imu.gyro, acc), 0, int(imu.t_ns[-1]), BackendConfig()) is None
+    assert static_start(ImuSeries(imu.t_ns, imu.gyro, acc), 0, int(imu.t_ns[-1]), *AT_REST) is None
     gyro = imu.gyro + np.column_stack([np.zeros_like(t_s), np.zeros_like(t_s), 0.5 * t_s])
-    assert static_start(ImuSeries(imu.t_ns, gyro, imu.acc), 0, int(imu.t_ns[-1]), BackendConfig()) is None
+    assert static_start(ImuSeries(imu.t_ns, gyro, imu.acc), 0, int(imu.t_ns[-1]), *AT_REST) is None
 
 
 def test_fit_yaw_translation():
@@ -61,7 +63,7 @@ def test_fit_yaw_translation():
 
 def _book():
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    return LandmarkBook(K, np.eye(4), BackendConfig(min_views=3, min_parallax_deg=2.0, max_reprojection_px=2.0))
+    return LandmarkBook(K, np.eye(4), LandmarkConfig(min_views=3, min_parallax_deg=2.0, max_reprojection_px=2.0))
 
 
 def _views(book, p_world, xs):

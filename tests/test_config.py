@@ -2,15 +2,16 @@ from __future__ import annotations
 
 import pytest
 
-from vio.config import Config, load_config, parse_overrides
+from vio.config import Config, load_config, parse_overrides, preset_names
 from vio.errors import ConfigError
 
 
 def test_defaults_and_overrides(tmp_path):
-    cfg = load_config(None, ["tracker.max_features=200", "backend.smoother=fixed_lag", "backend.lag_s=2"])
+    cfg = load_config(None, ["tracker.max_features=200", "smoother.kind=fixed_lag", "smoother.lag_s=2"])
     assert cfg.tracker.max_features == 200
-    assert cfg.backend.smoother == "fixed_lag"
-    assert cfg.backend.lag_s == 2.0 and isinstance(cfg.backend.lag_s, float)
+    assert cfg.smoother.kind == "fixed_lag"
+    assert cfg.smoother.lag_s == 2.0 and isinstance(cfg.smoother.lag_s, float)
+    assert cfg.backend.smoother is cfg.smoother  # the estimator's bundle holds the same sections
     assert load_config(None, ["imu.integration_sigma=1e-3"]).imu.integration_sigma == 0.001
     assert Config().tracker.max_features == 150
 
@@ -49,3 +50,32 @@ def test_parse_overrides_types():
         "a": {"b": True, "c": 0.5},
         "d": {"e": "text"},
     }
+
+
+@pytest.mark.parametrize(
+    ("old", "new"),
+    [
+        ("backend.smoother=fixed_lag", "smoother.kind"),
+        ("backend.use_imu=false", "estimator.mode"),
+        ("backend.reid_radius_px=10", "reidentification.radius_px"),
+        ("backend.still_max_px=1", "zero_velocity.max_flow_px"),
+        ("imu.bias_init_sigma_acc=0.2", "initialisation.bias_sigma_acc"),
+    ],
+)
+def test_a_key_of_the_former_backend_section_names_its_new_place(old, new):
+    with pytest.raises(ConfigError, match=new.replace(".", r"\.")):
+        load_config(None, [old])
+
+
+def test_presets_apply_in_order_before_file_and_overrides(tmp_path):
+    assert "vision_only" in preset_names() and "fixed_lag" in preset_names()
+    cfg = load_config(None, [], presets=["vision_only"])
+    assert cfg.estimator.mode == "vision_only" and not cfg.backend.use_imu
+    assert cfg.keyframes.min_parallax_px == 12.0
+    p = tmp_path / "c.yaml"
+    p.write_text("keyframes:\n  min_parallax_px: 15\n")
+    cfg = load_config(p, ["smoother.lag_s=5"], presets=["vision_only", "fixed_lag"])
+    assert cfg.keyframes.min_parallax_px == 15.0  # the file wins over the preset
+    assert cfg.smoother.kind == "fixed_lag" and cfg.smoother.lag_s == 5.0  # the override wins over both
+    with pytest.raises(ConfigError, match="unknown preset 'nope'; known: fixed_lag, vision_only"):
+        load_config(None, [], presets=["nope"])

@@ -25,7 +25,7 @@ EQVIO_SET = ["run.progress=false"]  # the defaults work on the real tracks too
 def eqvio_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("eqvio_run")
     cfg = load_config(None, [*EQVIO_SET, "run.max_frames=240"])
-    return out, run_capture(read_eqvio(), out, cfg)
+    return out, run_capture(read_eqvio(), out, cfg).summary
 
 
 def test_outputs_are_complete_and_consistent(eqvio_run):
@@ -69,7 +69,7 @@ def test_known_positions_pin_the_world_frame(tmp_path):
     pos.write_text("t_s,x,y,z,sigma_m\n" + "\n".join(rows) + "\n")
     assert len(read_positions(pos)) == len(sel)
     cfg = load_config(None, [*EQVIO_SET, "run.max_frames=200"])
-    summary = run_capture(read_eqvio(), tmp_path / "out", cfg, positions=str(pos))
+    summary = run_capture(read_eqvio(), tmp_path / "out", cfg, positions=str(pos)).summary
     assert summary["num_position_factors"] > 10
     from vio.metrics import evaluate
 
@@ -106,7 +106,7 @@ def test_whole_euroc_file_meets_the_targets_online_and_in_batch(tmp_path):
     from vio.metrics import evaluate
 
     gt = read_trajectory(shared_path(*GT_PARTS))
-    summary = run_capture(read_eqvio(), tmp_path, load_config(None, EQVIO_SET), refine=True)
+    summary = run_capture(read_eqvio(), tmp_path, load_config(None, EQVIO_SET), refine=True).summary
     assert summary["refine"]["refined"] is True
     online = evaluate(gt, read_trajectory(tmp_path / "trajectory_online.tum"), align="se3")
     batch = evaluate(gt, read_trajectory(tmp_path / "trajectory.tum"), align="se3")

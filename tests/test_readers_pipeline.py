@@ -25,7 +25,7 @@ def test_asl_ros2_and_mars_give_the_same_trajectory(sim_capture, tmp_path):
     cfg = load_config(None, [])
     trajs = {}
     for name, path in inputs.items():
-        summary = run_capture(path, tmp_path / f"out_{name}", cfg)
+        summary = run_capture(path, tmp_path / f"out_{name}", cfg).summary
         assert summary["status"] == "ok" and summary["format"] == ("asl" if name == "asl" else name)
         trajs[name] = read_trajectory(tmp_path / f"out_{name}" / "trajectory.tum")
     base = trajs["asl"]

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from backend.atlas import LandmarkAtlas, gravity_angles_deg
-from frontend.descriptors import KeyframeDescriber, hamming
-from vio.config import BackendConfig
+from frontend.descriptors import KeyframeDescriber
+from vio.config import ReidentificationConfig
+from vio.descriptors import hamming
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -81,10 +82,10 @@ def test_gravity_points_down_the_image_of_a_level_camera_and_turns_with_roll():
     assert rolled[0] == pytest.approx(60.0, abs=1e-6)  # the image turns against the camera
 
 
-def _atlas(cfg: BackendConfig | None = None) -> tuple[LandmarkAtlas, np.ndarray, np.ndarray]:
+def _atlas(cfg: ReidentificationConfig | None = None) -> tuple[LandmarkAtlas, np.ndarray, np.ndarray]:
     """An atlas of 40 landmarks 1-2 m in front of a camera at the origin, with random descriptors."""
     rng = np.random.default_rng(3)
-    atlas = LandmarkAtlas(K, np.eye(4), cfg or BackendConfig())
+    atlas = LandmarkAtlas(K, np.eye(4), cfg or ReidentificationConfig())
     pts = np.column_stack([rng.uniform(-0.6, 0.6, 40), rng.uniform(0.0, 0.3, 40), rng.uniform(-0.4, 0.4, 40)])
     desc = rng.integers(0, 256, (40, 32), dtype=np.uint8)
     for j, p in enumerate(pts):
@@ -119,7 +120,7 @@ def test_atlas_rejects_far_pixels_wrong_descriptors_and_new_viewpoints():
     assert atlas.match(pose, uv + 30.0, desc[:5], ones, set()) == {}  # outside the search radius
     assert atlas.match(pose, uv, 255 - desc[:5], ones, set()) == {}  # a different point
     assert atlas.match(pose, uv, desc[:5], ~ones, set()) == {}  # not described
-    far = _look(60.0, c=(-0.87, -0.5, 0.0))  # 60 deg round: only snapshots within reid_max_view_deg compare
+    far = _look(60.0, c=(-0.87, -0.5, 0.0))  # 60 deg round: only snapshots within max_view_deg compare
     assert atlas.match(far, _pixels(far, pts[:5]), desc[:5], ones, set()) == {}
 
 
@@ -127,7 +128,7 @@ def test_atlas_ratio_test_and_one_track_per_landmark():
     atlas, pts, desc = _atlas()
     pose = _look(0.0)
     uv = _pixels(pose, pts[:1])
-    twin = LandmarkAtlas(K, np.eye(4), BackendConfig())
+    twin = LandmarkAtlas(K, np.eye(4), ReidentificationConfig())
     for j in (1, 2):  # two landmarks at the same pixel with the same descriptor: ambiguous
         twin.set_position(j, pts[0] + 0.001 * j)
     twin.remember(pose, np.array([1, 2]), np.repeat(desc[:1], 2, axis=0), np.ones(2, bool))

@@ -13,7 +13,14 @@ log = logging.getLogger("vio")
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", help="YAML config file (sections: tracker, keyframes, imu, backend, run)")
+    p.add_argument("--config", help="YAML config file, one section per stage (see vio/config.py)")
+    p.add_argument(
+        "--preset",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="named preset applied before --config and --set (vio/presets/NAME.yaml: vision_only, fixed_lag)",
+    )
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override")
 
 
@@ -36,7 +43,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from vio.config import load_config
     from vio.track import track_capture
 
-    cfg = load_config(args.config, args.overrides)
+    cfg = load_config(args.config, args.overrides, args.preset)
     track_capture(args.capture, args.out, cfg)
     return 0
 
@@ -44,22 +51,18 @@ def _cmd_track(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from vio.config import load_config
     from vio.pipeline import run_capture
+    from vio.readers import open_capture
 
-    cfg = load_config(args.config, args.overrides)
-    if args.serve:  # the viewer's address (and serving until Ctrl-C) must reach the user
-        logging.getLogger("vio.viz.rerun_sink").setLevel(logging.INFO)
-    run_capture(
-        args.capture,
-        args.out,
-        cfg,
-        positions=args.positions,
-        rrd=args.rrd,
-        serve=args.serve,
-        spawn=args.spawn,
-        port=args.port,
-        refine=args.refine or None,
-        calib=args.calib,
-    )
+    cfg = load_config(args.config, args.overrides, args.preset)
+    capture = open_capture(args.capture, calib=args.calib)  # a bad capture fails before a viewer starts
+    sinks = []
+    if args.rrd or args.serve or args.spawn:
+        from vio.viz.rerun_sink import make_rerun_sink
+
+        if args.serve:  # the viewer's address (and serving until Ctrl-C) must reach the user
+            logging.getLogger("vio.viz.rerun_sink").setLevel(logging.INFO)
+        sinks.append(make_rerun_sink(rrd=args.rrd, serve=args.serve, spawn=args.spawn, port=args.port))
+    run_capture(capture, args.out, cfg, positions=args.positions, sinks=sinks, refine=args.refine or None)
     return 0
 
 

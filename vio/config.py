@@ -16,6 +16,8 @@ import yaml
 
 from vio.errors import ConfigError
 
+PRESETS_DIR = Path(__file__).parent / "presets"  # named presets, one YAML each (`vio run --preset NAME`)
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
@@ -49,41 +51,105 @@ class KeyframeConfig:
 class ImuConfig:
     max_gap_s: float = 0.05  # an IMU gap longer than this between samples is reported
     integration_sigma: float = 1e-4  # sigma of the position-integration error (gtsam cov = sigma^2), m/sqrt(s)
-    bias_init_sigma_gyro: float = 0.01  # prior sigma on the initial gyro bias, rad/s
-    bias_init_sigma_acc: float = 0.1  # prior sigma on the initial accelerometer bias, m/s^2
     noise_inflation: float = 1.0  # multiplies the capture's Kalibr noise densities and random walks
 
 
 @dataclass(frozen=True)
-class BackendConfig:
+class EstimatorConfig:
+    mode: str = "visual_inertial"  # visual_inertial | vision_only (projection factors only; scale unknown, Sim3 only)
     pixel_sigma: float = 1.0  # projection noise, px
     huber_k: float = 1.345  # robust loss threshold, in sigmas
+
+
+@dataclass(frozen=True)
+class SmootherConfig:
+    kind: str = "isam2"  # isam2 | fixed_lag
+    lag_s: float = 3.0  # fixed-lag window when kind == fixed_lag, s
+    relinearize_threshold: float = 0.01  # iSAM2 relinearisation threshold (tangent-space norm)
+    relinearize_skip: int = 10  # relinearize every 10th update (measured: 2x less CPU, same accuracy)
+    factorization: str = "CHOLESKY"  # iSAM2: CHOLESKY (25% faster) | QR (survives long IMU-only stretches)
+
+
+@dataclass(frozen=True)
+class LandmarkConfig:
     min_views: int = 3  # a landmark needs this many views before it enters the graph
     min_parallax_deg: float = 2.0  # ... and this much ray parallax, deg
     max_reprojection_px: float = 3.0  # admission and re-check threshold, px
-    landmark_prior_sigma_m: float = 5.0  # weak prior on each landmark at its triangulated position, m
+    prior_sigma_m: float = 5.0  # weak prior on each landmark at its triangulated position, m
     max_track_keyframes: int = 0  # a track becomes a new landmark after this many keyframe views (0: only on drift)
-    relinearize_threshold: float = 0.01
-    relinearize_skip: int = 10  # relinearize every 10th update (measured: 2x less CPU, same accuracy)
-    factorization: str = "CHOLESKY"  # iSAM2: CHOLESKY (25% faster) | QR (survives long IMU-only stretches)
-    smoother: str = "isam2"  # isam2 | fixed_lag
-    lag_s: float = 3.0  # fixed-lag window when smoother == fixed_lag, s
-    init_window_s: float = 1.0  # moving-start initialisation window, s
-    static_init_max_gyro: float = 0.02  # std of 0.1 s gyro block means below which the start is static, rad/s
-    static_init_max_acc_std: float = 0.15  # std of 0.1 s accelerometer block means for a static start, m/s^2
-    still_max_px: float = 0.5  # zero-velocity update when tracks move less than this (median) and the IMU rests, px
-    still_window_s: float = 0.5  # IMU window of the at-rest test of the zero-velocity update, s
-    reid: bool = True  # re-identify new tracks with map landmarks by descriptor (backend/atlas.py); needs images
-    reid_radius_px: float = 20.0  # search radius around a landmark's predicted projection, px
-    reid_max_hamming: int = 50  # largest descriptor distance of a re-identification, bits of 256
-    reid_ratio: float = 0.8  # best distance must be below this times the second best among the candidates
-    reid_max_view_deg: float = 30.0  # compare with snapshots taken within this viewing-direction change, deg
-    reid_refresh_keyframes: int = 10  # refresh the atlas' landmark positions from the smoother this often
-    reid_defer_keyframes: int = 30  # a landmark unobserved this long is old: its re-observations are batched
-    reid_max_age_keyframes: int = 0  # only landmarks observed within this many keyframes are candidates (0: all)
-    reid_max_loops: int = 5  # old landmarks re-identified per flush period at most (bounds the solver's cost)
-    reid_flush_keyframes: int = 10  # batched re-observations of old landmarks enter the smoother this often
-    use_imu: bool = True  # false: projection factors only (backend/visual_only.py; scale unknown, Sim3 only)
+
+
+@dataclass(frozen=True)
+class InitialisationConfig:
+    window_s: float = 1.0  # first window buffered before the start, s
+    static_max_gyro: float = 0.02  # std of 0.1 s gyro block means below which the start is static, rad/s
+    static_max_acc_std: float = 0.15  # std of 0.1 s accelerometer block means for a static start, m/s^2
+    bias_sigma_gyro: float = 0.01  # prior sigma on the initial gyro bias, rad/s
+    bias_sigma_acc: float = 0.1  # prior sigma on the initial accelerometer bias, m/s^2
+    tilt_sigma_rad: float = 0.1  # prior on the first pose's roll and pitch (gravity observes them), rad
+    gauge_sigma_rad: float = 1e-3  # prior on the first pose's yaw (the unobservable gauge), rad
+    gauge_sigma_m: float = 1e-3  # prior on the first pose's position (the unobservable gauge), m
+    velocity_sigma_static: float = 0.01  # prior on the first velocity (zero) of a static start, m/s
+    velocity_sigma_moving: float = 0.5  # prior on the first velocity of a moving start's closed-form guess, m/s
+
+
+@dataclass(frozen=True)
+class ZeroVelocityConfig:
+    max_flow_px: float = 0.5  # at rest when tracks move less than this (median) and the IMU rests (0: off), px
+    window_s: float = 0.5  # IMU window of the at-rest test, s
+    max_gyro_std: float = 0.02  # at-rest test: std of 0.1 s gyro block means, rad/s
+    max_acc_std: float = 0.15  # at-rest test: std of 0.1 s accelerometer block means, m/s^2
+    sigma_rad: float = 1e-3  # no-rotation factor between the two keyframes at rest, rad
+    sigma_m: float = 1e-3  # no-translation factor between the two keyframes at rest, m
+    velocity_sigma: float = 0.01  # zero-velocity prior, m/s
+
+
+@dataclass(frozen=True)
+class ReidentificationConfig:
+    enabled: bool = True  # re-identify new tracks with map landmarks by descriptor (backend/atlas.py); needs images
+    radius_px: float = 20.0  # search radius around a landmark's predicted projection, px
+    max_hamming: int = 50  # largest descriptor distance of a re-identification, bits of 256
+    ratio: float = 0.8  # best distance must be below this times the second best among the candidates
+    max_view_deg: float = 30.0  # compare with snapshots taken within this viewing-direction change, deg
+    refresh_keyframes: int = 10  # refresh the atlas' landmark positions from the smoother this often
+    defer_keyframes: int = 30  # a landmark unobserved this long is old: its re-observations are batched
+    max_age_keyframes: int = 0  # only landmarks observed within this many keyframes are candidates (0: all)
+    max_loops: int = 5  # old landmarks re-identified per flush period at most (bounds the solver's cost)
+    flush_keyframes: int = 10  # batched re-observations of old landmarks enter the smoother this often
+
+
+@dataclass(frozen=True)
+class RecoveryConfig:
+    pose_sigma: float = 1e-3  # prior on the restart pose, rad (rotation) and m (position)
+    velocity_sigma: float = 0.05  # prior on the restart velocity, m/s
+    bias_sigma_acc: float = 0.02  # prior on the restart accelerometer bias, m/s^2
+    bias_sigma_gyro: float = 1e-3  # prior on the restart gyro bias, rad/s
+
+
+@dataclass(frozen=True)
+class VisionOnlyConfig:
+    start_pose_sigma: float = 1e-4  # prior on the first pose (the gauge), rad and scale units
+    baseline_sigma: float = 1e-3  # prior on the second start pose's position (fixes the scale: baseline 1), units
+    motion_sigma_rad: float = 0.2  # constant-velocity prior between keyframes, rotation, rad
+    motion_sigma_units: float = 1.0  # constant-velocity prior between keyframes, translation, scale units
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """The estimator's sections; each part of the estimator receives only its own."""
+
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    smoother: SmootherConfig = field(default_factory=SmootherConfig)
+    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+    initialisation: InitialisationConfig = field(default_factory=InitialisationConfig)
+    zero_velocity: ZeroVelocityConfig = field(default_factory=ZeroVelocityConfig)
+    reidentification: ReidentificationConfig = field(default_factory=ReidentificationConfig)
+    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
+    vision_only: VisionOnlyConfig = field(default_factory=VisionOnlyConfig)
+
+    @property
+    def use_imu(self) -> bool:
+        return self.estimator.mode != "vision_only"
 
 
 @dataclass(frozen=True)
@@ -98,8 +164,20 @@ class Config:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
-    backend: BackendConfig = field(default_factory=BackendConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    smoother: SmootherConfig = field(default_factory=SmootherConfig)
+    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+    initialisation: InitialisationConfig = field(default_factory=InitialisationConfig)
+    zero_velocity: ZeroVelocityConfig = field(default_factory=ZeroVelocityConfig)
+    reidentification: ReidentificationConfig = field(default_factory=ReidentificationConfig)
+    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
+    vision_only: VisionOnlyConfig = field(default_factory=VisionOnlyConfig)
     run: RunConfig = field(default_factory=RunConfig)
+
+    @property
+    def backend(self) -> BackendConfig:
+        """The estimator's sections, bundled for `VioEstimator`."""
+        return BackendConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(BackendConfig)})
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -140,11 +218,49 @@ def _build_section(section: str, cls: type, values: dict[str, Any]) -> Any:
     return cls(**kwargs)
 
 
+# Keys of the former single `backend` section, now in the section of the estimator part that uses them.
+_MOVED = {
+    "use_imu": "estimator.mode (visual_inertial | vision_only)",
+    "pixel_sigma": "estimator.pixel_sigma",
+    "huber_k": "estimator.huber_k",
+    "smoother": "smoother.kind",
+    "lag_s": "smoother.lag_s",
+    "relinearize_threshold": "smoother.relinearize_threshold",
+    "relinearize_skip": "smoother.relinearize_skip",
+    "factorization": "smoother.factorization",
+    "min_views": "landmarks.min_views",
+    "min_parallax_deg": "landmarks.min_parallax_deg",
+    "max_reprojection_px": "landmarks.max_reprojection_px",
+    "landmark_prior_sigma_m": "landmarks.prior_sigma_m",
+    "max_track_keyframes": "landmarks.max_track_keyframes",
+    "init_window_s": "initialisation.window_s",
+    "static_init_max_gyro": "initialisation.static_max_gyro",
+    "static_init_max_acc_std": "initialisation.static_max_acc_std",
+    "still_max_px": "zero_velocity.max_flow_px",
+    "still_window_s": "zero_velocity.window_s",
+    "reid": "reidentification.enabled",
+}
+
+
+def _moved_key(section: str, key: str) -> str:
+    if section == "imu" and key.startswith("bias_init_sigma_"):
+        return "initialisation." + key.replace("bias_init_", "bias_")
+    if section == "backend":
+        if key.startswith("reid_"):
+            return "reidentification." + key[len("reid_") :]
+        return _MOVED.get(key, "")
+    return ""
+
+
 def config_from_dict(data: dict[str, Any] | None) -> Config:
-    """Build a Config from nested dicts, rejecting unknown sections and keys."""
+    """Build a Config from nested dicts, rejecting unknown sections and keys (naming a moved key's new place)."""
     data = data or {}
     if not isinstance(data, dict):
         raise ConfigError("config must be a mapping of sections")
+    for section, values in data.items():
+        for key in values if isinstance(values, dict) else ():
+            if moved := _moved_key(section, key):
+                raise ConfigError(f"config key {section}.{key} is now {moved}")
     sections = {f.name: typing.get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)}
     unknown = sorted(set(data) - set(sections))
     if unknown:
@@ -168,23 +284,44 @@ def parse_overrides(overrides: list[str] | None) -> dict[str, dict[str, Any]]:
     return out
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
-    """Load a YAML config file (optional) and apply `section.key=value` overrides."""
-    data: dict[str, Any] = {}
-    if path is not None:
-        p = Path(path)
-        try:
-            data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
-        except FileNotFoundError:
-            raise ConfigError(f"{p}: config file not found") from None
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            line = f":{mark.line + 1}" if mark is not None else ""
-            raise ConfigError(f"{p}{line}: not valid YAML") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"{p}: config must be a mapping of sections")
-    for section, values in parse_overrides(overrides).items():
-        if not isinstance(data.get(section, {}), dict):
+def preset_names() -> list[str]:
+    """The named presets shipped with vio (`vio/presets/NAME.yaml`)."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
+def _read_yaml_mapping(p: Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f":{mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{p}{line}: not valid YAML") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: config must be a mapping of sections")
+    return data
+
+
+def _merge(data: dict[str, Any], more: dict[str, Any]) -> None:
+    for section, values in more.items():
+        if not isinstance(values, dict) or not isinstance(data.get(section, {}), dict):
             raise ConfigError(f"config section '{section}' must be a mapping")
         data.setdefault(section, {}).update(values)
+
+
+def load_config(
+    path: str | Path | None = None, overrides: list[str] | None = None, presets: list[str] | tuple[str, ...] = ()
+) -> Config:
+    """The effective configuration: defaults, then each named preset in order (`vio/presets/NAME.yaml`), then the
+    YAML file `path`, then the `section.key=value` overrides."""
+    data: dict[str, Any] = {}
+    for name in presets:
+        p = PRESETS_DIR / f"{name}.yaml"
+        if not p.is_file():
+            raise ConfigError(f"unknown preset {name!r}; known: {', '.join(preset_names())}")
+        _merge(data, _read_yaml_mapping(p))
+    if path is not None:
+        _merge(data, _read_yaml_mapping(Path(path)))
+    _merge(data, parse_overrides(overrides))
     return config_from_dict(data)

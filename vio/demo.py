@@ -25,7 +25,9 @@ def run_demo(out: str | Path, duration_s: float = 30.0, seed: int = 0) -> str:
     run_dir = out / "run"
     log.info("simulating orbit (%.0f s, seed %d) into %s", duration_s, seed, capture)
     simulate("orbit", capture, seed=seed, duration_s=duration_s, imu_grade="phone", overwrite=True)
-    summary = run_capture(capture, run_dir, load_config(), rrd=str(out / "demo.rrd"))
+    from vio.viz.rerun_sink import make_rerun_sink
+
+    summary = run_capture(capture, run_dir, load_config(), sinks=[make_rerun_sink(rrd=out / "demo.rrd")]).summary
     gt = capture / "mav0" / "state_groundtruth_estimate0" / "data.csv"
     est = run_dir / "trajectory.tum"
     lines = [

@@ -1,15 +1,20 @@
-"""The run's output files, each written atomically: trajectory.tum, states.csv, landmarks.ply, run.json."""
+"""The run's output files, each written atomically: trajectory.tum, states.csv, landmarks.ply, run.json (built
+here from the estimator's stats and the pipeline's counts)."""
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from vio.atomic import atomic_open, write_json
+from vio.capture import Capture
+from vio.config import Config
 from vio.geometry import R_to_quat_wxyz
-from vio.records import StateEstimate
+from vio.records import EstimatorStats, LandmarkMap, StateEstimate
 from vio.trajio import Trajectory, write_tum
 
 STATES_HEADER = "t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
@@ -69,3 +74,67 @@ def write_landmarks_ply(path: str | Path, p_world: np.ndarray, rgb: np.ndarray, 
 
 def write_run_json(path: str | Path, summary: dict[str, Any]) -> None:
     write_json(path, summary)
+
+
+@dataclass(frozen=True)
+class RunCounts:
+    """What the pipeline counted and timed over a run."""
+
+    num_frames: int  # frames read
+    num_keyframes: int  # keyframes given to the estimator
+    num_states: int  # keyframes with a final estimate
+    num_landmarks: int
+    span_s: float  # sensor time from the first to the last frame, s
+    wall_s: float  # wall time of the whole run, s
+    cpu_s: float  # CPU time of this process (the machine may be shared), s
+
+
+def run_summary(
+    cap: Capture, cfg: Config, stats: EstimatorStats, counts: RunCounts, refine: dict[str, Any], errors: list[str]
+) -> dict[str, Any]:
+    """The contents of run.json."""
+    tm = np.asarray(stats.keyframe_ms)
+    return {
+        "status": "ok" if counts.num_states else "not_initialised",
+        "capture": str(cap.root),
+        "format": cap.format,
+        "num_frames": counts.num_frames,
+        "num_keyframes": counts.num_keyframes,
+        "num_states": counts.num_states,
+        "num_landmarks": counts.num_landmarks,
+        "initialisation": stats.initialisation,
+        "num_zero_velocity_updates": stats.num_zero_velocity_updates,
+        "num_track_splits": stats.num_track_splits,
+        "num_reidentified": stats.num_reidentified,
+        "num_loop_flushes": stats.num_loop_flushes,
+        "num_position_factors": stats.num_position_factors,
+        "span_s": counts.span_s,
+        "wall_time_s": counts.wall_s,
+        "realtime_factor": counts.span_s / counts.wall_s if counts.wall_s > 0 else 0.0,
+        "cpu_time_s": counts.cpu_s,
+        "keyframe_ms": {
+            "median": float(np.median(tm)) if tm.size else 0.0,
+            "p95": float(np.percentile(tm, 95)) if tm.size else 0.0,
+            "max": float(tm.max()) if tm.size else 0.0,
+            "per_keyframe": [round(float(x), 2) for x in tm],
+        },
+        "recoveries": [dataclasses.asdict(r) for r in stats.recoveries],
+        "refine": refine,
+        "warnings": list(cap.warnings) + list(stats.warnings) + errors,
+        "config": cfg.to_dict(),
+    }
+
+
+def write_estimate(
+    out: Path,
+    states: list[StateEstimate],
+    online_states: list[StateEstimate],
+    landmarks: LandmarkMap,
+    rgb: np.ndarray,
+) -> None:
+    """trajectory.tum, states.csv and landmarks.ply (and trajectory_online.tum when the run was refined)."""
+    write_trajectory(out / "trajectory.tum", states)
+    if online_states:
+        write_trajectory(out / "trajectory_online.tum", online_states)
+    write_states(out / "states.csv", states)
+    write_landmarks_ply(out / "landmarks.ply", landmarks.points_world, rgb, landmarks.num_obs)

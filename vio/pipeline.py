@@ -1,9 +1,11 @@
-"""`vio run`: the only module that knows both the frontends and the backend.
+"""`vio run`: the only module that knows both the frontends and the backend; it wires the stages and does nothing
+else.
 
 Frames go through the OpenCV tracker (or precomputed tracks, e.g. gtsam's eqvio file), the keyframe selector
 picks keyframes, the estimator preintegrates the IMU between them and updates the smoother; estimates go to the
-sinks (rerun) and, at the end, to trajectory.tum, states.csv, landmarks.ply and run.json in `out`.
-A tracking loss or a solver exception does not end the run; they are counted and reported in run.json.
+sinks (the rerun viewer is one, built by the command line) and, at the end, `vio.outputs` writes trajectory.tum,
+states.csv, landmarks.ply and run.json in `out`. A tracking loss or a solver exception does not end the run;
+they are counted and reported in run.json.
 """
 
 from __future__ import annotations
@@ -13,6 +15,9 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,9 +31,21 @@ from vio.atomic import ensure_dir
 from vio.capture import Capture
 from vio.config import Config
 from vio.errors import CaptureError, EstimationError
+from vio.records import EstimatorStats, FeatureTracks, Frame, LandmarkMap, StateEstimate
+from vio.sinks import EstimateSink
 
 log = logging.getLogger(__name__)
-_TRACK_MASK = (1 << 40) - 1  # landmark id -> the tracker's track id (backend.estimator._segment_ids)
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What `run_capture` produced: the run summary written to run.json, the estimator's stats, the estimate."""
+
+    out: Path  # the output folder
+    summary: dict[str, Any]  # the contents of run.json
+    stats: EstimatorStats
+    states: list[StateEstimate]  # every keyframe's final estimate, in time order
+    landmarks: LandmarkMap
 
 
 def open_any(capture: str | os.PathLike[str] | Capture, calib: str | None = None) -> Capture:
@@ -63,7 +80,10 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-def _frames_and_tracks(cap: Capture, cfg: Config, stop: int):
+Tracked = tuple[Frame | None, FeatureTracks, np.ndarray]  # (frame or None, tracks, track ages in frames (N,))
+
+
+def _frames_and_tracks(cap: Capture, cfg: Config, stop: int) -> Iterator[Tracked]:
     """Yield (frame or None, tracks, ages) for every frame: from the tracker, or the capture's own tracks."""
     if cap.tracks is not None:
         first_seen: dict[int, int] = {}
@@ -79,13 +99,36 @@ def _frames_and_tracks(cap: Capture, cfg: Config, stop: int):
         yield frame, tracks, tracker.ages()
 
 
-def _sample_colours(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 RGB at the nearest pixel (grey images give grey)."""
-    h, w = image.shape[:2]
-    u = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
-    v = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
-    px = image[v, u]
-    return np.repeat(px[:, None], 3, axis=1) if px.ndim == 1 else px[:, ::-1]
+class _TrackColours:
+    """The image colour of each track where it was first seen (grey images give grey), for landmarks.ply."""
+
+    def __init__(self) -> None:
+        self._rgb: dict[int, np.ndarray] = {}
+
+    def see(self, frame: Frame, tracks: FeatureTracks) -> None:
+        new = [i for i, j in enumerate(tracks.ids.tolist()) if j not in self._rgb]
+        if not new:
+            return
+        image, uv = frame.image, tracks.uv[new]
+        h, w = image.shape[:2]
+        u = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
+        v = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
+        px = image[v, u]
+        rgb = np.repeat(px[:, None], 3, axis=1) if px.ndim == 1 else px[:, ::-1]
+        for j, c in zip(tracks.ids[new].tolist(), rgb, strict=True):
+            self._rgb[j] = c
+
+    def of(self, track_ids: np.ndarray) -> np.ndarray:
+        """(M, 3) uint8 RGB of tracks (light grey for tracks never seen in an image)."""
+        return np.array([self._rgb.get(int(j), (200, 200, 200)) for j in track_ids], np.uint8).reshape(-1, 3)
+
+
+def _add_keyframe(est: VioEstimator, frame: Frame | None, tracks: FeatureTracks, cfg: Config) -> list[StateEstimate]:
+    """One keyframe into the estimator; an error in it is logged and skipped, never ends the run."""
+    describe = None
+    if frame is not None and cfg.reidentification.enabled:
+        describe = KeyframeDescriber(frame.image).describe
+    return est.add_keyframe(tracks.t_ns, tracks, describe)
 
 
 def run_capture(
@@ -93,126 +136,89 @@ def run_capture(
     out: str | os.PathLike[str],
     cfg: Config,
     positions: str | None = None,
-    rrd: str | None = None,
-    serve: bool = False,
-    spawn: bool = False,
-    port: int = 0,
+    sinks: Sequence[EstimateSink] = (),
     refine: bool | None = None,
     calib: str | None = None,
-) -> dict[str, Any]:
-    """Estimate the whole capture; writes the four output files into `out` and returns the run summary."""
-    t_start = time.perf_counter()
-    cpu_start = time.process_time()
-    out = ensure_dir(out)  # first: a folder in the way fails before any work
-    cap = open_any(capture, calib)
-    if cap.camera is None or cap.imu is None or cap.imu_calib is None:
-        raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
-    known = None
-    if positions is not None:
-        from vio.positions import read_positions
+) -> RunResult:
+    """Estimate the whole capture; writes the four output files into `out` (see vio.outputs) and returns them.
 
-        known = read_positions(positions)
-    refine = cfg.run.refine if refine is None else bool(refine)
-    sink = None
-    if rrd or serve or spawn:
-        from vio.viz.rerun_sink import make_rerun_sink
+    Sinks receive the calibration, every frame and every estimate as the run goes; they are closed at the end.
+    """
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    try:
+        out = ensure_dir(out)  # first: a folder in the way fails before any work
+        cap = open_any(capture, calib)
+        if cap.camera is None or cap.imu is None or cap.imu_calib is None:
+            raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
+        known = None
+        if positions is not None:
+            from vio.positions import read_positions
 
-        sink = make_rerun_sink(rrd=rrd, serve=serve, spawn=spawn, port=port)
-        sink.on_start(cap.camera, cap.imu, cap.ground_truth)
-    pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
-    est = VioEstimator(
-        cap.camera, cap.imu, pre.between, cfg.backend, cfg.imu.bias_init_sigma_acc, cfg.imu.bias_init_sigma_gyro, known
-    )
-    selector = KeyframeSelector(cfg.keyframes)
-    n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
-    stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)
-    bar = _Progress(stop, cfg.run.progress)
-    colours: dict[int, np.ndarray] = {}
-    errors: list[str] = []
-    n_kf = n_done = 0
-    t_first = t_last = None
-    for n_done, (frame, tracks, ages) in enumerate(_frames_and_tracks(cap, cfg, stop), start=1):
-        t_first = tracks.t_ns if t_first is None else t_first
-        t_last = tracks.t_ns
-        if frame is not None:
-            new = [i for i, j in enumerate(tracks.ids.tolist()) if j not in colours]
-            if new:
-                for j, c in zip(tracks.ids[new].tolist(), _sample_colours(frame.image, tracks.uv[new]), strict=True):
-                    colours[j] = c
-            if sink is not None:
-                sink.on_frame(frame, tracks.ids, tracks.uv, ages)
-        if selector.consider(tracks):
-            n_kf += 1
-            try:
-                describe = None
-                if frame is not None and cfg.backend.reid:
-                    describe = KeyframeDescriber(frame.image).describe
-                produced = est.add_keyframe(tracks.t_ns, tracks, describe)
-            except (RuntimeError, ValueError) as exc:  # never end the run on one bad keyframe
-                msg = f"keyframe at t={tracks.t_ns} ns skipped: {type(exc).__name__}: {exc}"
-                log.warning(msg)
-                errors.append(msg)
-                produced = []
-            if sink is not None and produced:
-                lm_ids, lm_pts, _ = est.landmarks(sync=False)
-                produced[-1] = dataclasses.replace(produced[-1], landmark_ids=lm_ids, landmarks_world=lm_pts)
-                for s in produced:
-                    sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(lm_ids)})
-        bar.update(n_done, n_kf)
-    bar.close()
-    online_states = est.states() if refine else []  # kept beside the refined answer, for comparison
-    refine_info = est.finish(refine)
-    states = est.states()
-    ids, pts, nobs = est.landmarks()
-    rgb = np.array([colours.get(int(j) & _TRACK_MASK, (200, 200, 200)) for j in ids], np.uint8).reshape(-1, 3)
-    wall = time.perf_counter() - t_start
-    span_s = (t_last - t_first) * 1e-9 if t_first is not None else 0.0
-    tm = np.asarray(est.timings_ms)
-    summary: dict[str, Any] = {
-        "status": "ok" if states else "not_initialised",
-        "capture": str(cap.root),
-        "format": cap.format,
-        "num_frames": n_done,
-        "num_keyframes": n_kf,
-        "num_states": len(states),
-        "num_landmarks": int(len(ids)),
-        "initialisation": est.init_kind,
-        "num_zero_velocity_updates": est.num_still,
-        "num_track_splits": est.num_splits,
-        "num_reidentified": est.num_reidentified,
-        "num_loop_flushes": est.num_loop_flushes,
-        "num_position_factors": est.anchor.num_factors if est.anchor is not None else 0,
-        "span_s": span_s,
-        "wall_time_s": wall,
-        "realtime_factor": span_s / wall if wall > 0 else 0.0,
-        "cpu_time_s": time.process_time() - cpu_start,  # this process only (the machine may be shared)
-        "keyframe_ms": {
-            "median": float(np.median(tm)) if tm.size else 0.0,
-            "p95": float(np.percentile(tm, 95)) if tm.size else 0.0,
-            "max": float(tm.max()) if tm.size else 0.0,
-            "per_keyframe": [round(float(x), 2) for x in tm],
-        },
-        "recoveries": est.recoveries,
-        "refine": refine_info,
-        "warnings": list(cap.warnings) + est.warnings + errors,
-        "config": cfg.to_dict(),
-    }
-    outputs.write_run_json(out / "run.json", summary)
-    if sink is not None:
-        sink.close()
+            known = read_positions(positions)
+        refine = cfg.run.refine if refine is None else bool(refine)
+        for sink in sinks:
+            sink.on_start(cap.camera, cap.imu, cap.ground_truth)
+        pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
+        est = VioEstimator(cap.camera, cap.imu, pre.between, cfg.backend, known)
+        selector = KeyframeSelector(cfg.keyframes)
+        n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
+        stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)
+        bar = _Progress(stop, cfg.run.progress)
+        colours = _TrackColours()
+        errors: list[str] = []
+        n_kf = n_done = 0
+        t_first = t_last = None
+        for n_done, (frame, tracks, ages) in enumerate(_frames_and_tracks(cap, cfg, stop), start=1):
+            t_first = tracks.t_ns if t_first is None else t_first
+            t_last = tracks.t_ns
+            if frame is not None:
+                colours.see(frame, tracks)
+                for sink in sinks:
+                    sink.on_frame(frame, tracks.ids, tracks.uv, ages)
+            if selector.consider(tracks):
+                n_kf += 1
+                try:
+                    produced = _add_keyframe(est, frame, tracks, cfg)
+                except (RuntimeError, ValueError) as exc:  # never end the run on one bad keyframe
+                    errors.append(f"keyframe at t={tracks.t_ns} ns skipped: {type(exc).__name__}: {exc}")
+                    log.warning(errors[-1])
+                    produced = []
+                if sinks and produced:
+                    live = est.landmarks(sync=False)
+                    produced[-1] = dataclasses.replace(
+                        produced[-1], landmark_ids=live.ids, landmarks_world=live.points_world
+                    )
+                    for s in produced:
+                        for sink in sinks:
+                            sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(live)})
+            bar.update(n_done, n_kf)
+        bar.close()
+        online_states = est.states() if refine else []  # kept beside the refined answer, for comparison
+        refine_info = est.finish(refine)
+        states, landmarks, stats = est.states(), est.landmarks(), est.stats()
+        wall = time.perf_counter() - t_start
+        span_s = (t_last - t_first) * 1e-9 if t_first is not None else 0.0
+        summary = outputs.run_summary(
+            cap,
+            cfg,
+            stats,
+            outputs.RunCounts(n_done, n_kf, len(states), len(landmarks), span_s, wall, time.process_time() - cpu_start),
+            refine_info,
+            errors,
+        )
+        outputs.write_run_json(out / "run.json", summary)
+    finally:
+        for sink in sinks:
+            sink.close()
     if not states:
         raise EstimationError(f"{cap.root}: the estimator never initialised ({n_kf} keyframes); see {out / 'run.json'}")
-    outputs.write_trajectory(out / "trajectory.tum", states)
-    if online_states:
-        outputs.write_trajectory(out / "trajectory_online.tum", online_states)
-    outputs.write_states(out / "states.csv", states)
-    outputs.write_landmarks_ply(out / "landmarks.ply", pts, rgb, nobs)
+    outputs.write_estimate(out, states, online_states, landmarks, colours.of(landmarks.track_ids))
     log.info(
         "%d keyframes, %d landmarks, %.1f s wall (%.2fx real time), %d recoveries",
         len(states),
-        len(ids),
+        len(landmarks),
         wall,
         summary["realtime_factor"],
-        len(est.recoveries),
+        len(stats.recoveries),
     )
-    return summary
+    return RunResult(out, summary, stats, states, landmarks)

@@ -178,3 +178,53 @@ class StateEstimate:
     landmark_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (M,) track ids
     landmarks_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (M, 3) m, world
     solve_ms: float = 0.0  # wall time of the update that produced this estimate, ms
+
+
+@dataclass(frozen=True)
+class LandmarkMap:
+    """The estimator's landmarks (in the output frame: the known positions' frame when they were given)."""
+
+    ids: np.ndarray  # (M,) int64 landmark ids (track id plus segment; see backend/keys.py)
+    track_ids: np.ndarray  # (M,) int64 the tracker's track id each landmark came from
+    points_world: np.ndarray  # (M, 3) m, world
+    num_obs: np.ndarray  # (M,) int64 projection factors on each landmark
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+@dataclass(frozen=True)
+class ReidentificationEvent:
+    """A new track re-identified as a landmark already in the map."""
+
+    t_ns: int  # keyframe time of the re-identification, ns
+    landmark_id: int  # the old landmark
+    uv_px: np.ndarray  # (2,) distorted pixel of the new track in that keyframe
+    first_t_ns: int  # time of the landmark's first kept view, ns
+    first_uv_px: np.ndarray  # (2,) undistorted pixel of that first view
+
+
+@dataclass(frozen=True)
+class RecoveryEvent:
+    """A solver failure the estimator survived by rebuilding from the last good keyframe."""
+
+    k: int  # keyframe whose update failed
+    t_ns: int  # its time, ns
+    reason: str  # the solver's message
+    restart_from_k: int  # the keyframe the smoother was rebuilt from
+
+
+@dataclass(frozen=True)
+class EstimatorStats:
+    """What the estimator reports about a run (counts, timings, events); `run.json` is built from it."""
+
+    initialisation: str  # "static" | "moving" | "visual" | "" (never initialised)
+    keyframe_ms: tuple[float, ...]  # wall time of each keyframe's update (one entry for the whole start), ms
+    num_zero_velocity_updates: int
+    num_track_splits: int
+    num_reidentified: int
+    num_loop_flushes: int
+    num_position_factors: int
+    recoveries: tuple[RecoveryEvent, ...]
+    reidentifications: tuple[ReidentificationEvent, ...]
+    warnings: tuple[str, ...]

@@ -7,6 +7,7 @@ reading that every method shares.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vio.bench.suites import Method
 from vio.errors import EstimationError
 from vio.trajio import write_tum
 
@@ -61,7 +63,7 @@ def _latencies(run: dict) -> np.ndarray | None:
     return np.asarray(per, float) if isinstance(per, list) and per else None
 
 
-def _pipeline(capture_dir: Path, out: Path, overrides: tuple[str, ...], refine: bool) -> tuple[dict, float]:
+def _pipeline(capture_dir: Path, out: Path, method: Method, refine: bool) -> tuple[dict, float]:
     """One `run_capture` into `out` with the progress bar off; returns (run.json, wall time s).
 
     With `refine`, the pipeline writes the online estimate (the smoother's estimate of every keyframe just before
@@ -70,7 +72,7 @@ def _pipeline(capture_dir: Path, out: Path, overrides: tuple[str, ...], refine: 
     from vio.config import load_config
     from vio.pipeline import run_capture
 
-    cfg = load_config(None, ["run.progress=false", *overrides])
+    cfg = load_config(None, ["run.progress=false", *method.overrides], method.presets)
     (out / "trajectory_online.tum").unlink(missing_ok=True)
     t0 = time.perf_counter()
     run_capture(capture_dir, out, cfg, refine=refine)
@@ -86,9 +88,7 @@ def _info(run: dict) -> dict:
     return {k: run[k] for k in keys if k in run}
 
 
-def run_vio(
-    capture_dir: Path, out: Path, name: str = "vio", overrides: tuple[str, ...] = (), refine: bool = False
-) -> list[MethodOutput]:
+def run_vio(capture_dir: Path, out: Path, method: Method) -> list[MethodOutput]:
     """The online estimator as shipped (`vio.pipeline.run_capture`); with `refine`, also its batch optimum.
 
     The online estimate is the smoother's final estimate of every keyframe (trajectory.tum of a run without
@@ -98,17 +98,18 @@ def run_vio(
     deterministic frontend and graph) in `out/online` and `out`.
     """
     rows: list[MethodOutput] = []
-    if not refine:
-        run, wall = _pipeline(capture_dir, out, overrides, refine=False)
+    name = method.name
+    if not method.refine:
+        run, wall = _pipeline(capture_dir, out, method, refine=False)
         return [MethodOutput(name, out / "trajectory.tum", wall, _latencies(run), "se3", _info(run))]
-    run, wall = _pipeline(capture_dir, out, overrides, refine=True)
+    run, wall = _pipeline(capture_dir, out, method, refine=True)
     refine_s = float((run.get("refine") or {}).get("refine_s", 0.0))
     if not (run.get("refine") or {}).get("refined", False):
         raise EstimationError(f"{out}: the batch refinement did not run or failed; see run.json warnings")
     if (out / "trajectory_online.tum").exists():
         online = MethodOutput(name, out / "trajectory_online.tum", wall - refine_s, _latencies(run), "se3", _info(run))
     else:
-        run_on, wall_on = _pipeline(capture_dir, out / "online", overrides, refine=False)
+        run_on, wall_on = _pipeline(capture_dir, out / "online", method, refine=False)
         online = MethodOutput(
             name, out / "online" / "trajectory.tum", wall_on, _latencies(run_on), "se3", _info(run_on)
         )
@@ -116,10 +117,9 @@ def run_vio(
     return rows
 
 
-def run_vision_only(capture_dir: Path, out: Path, overrides: tuple[str, ...] = ()) -> list[MethodOutput]:
-    """The same frontend and graph without the IMU (`backend.use_imu=false`: projection factors only, two-view
-    start with unit baseline, PnP pose guesses); scale is unobservable, so it is scored after Sim3 alignment.
-    Keyframes at 12 px parallax: without the IMU, denser keyframes chain the views better than the inertial 20 px."""
-    cfg = ("keyframes.min_parallax_px=12", *overrides, "backend.use_imu=false")
-    res = run_vio(capture_dir, out, "vision_only", cfg, refine=False)
+def run_vision_only(capture_dir: Path, out: Path, method: Method) -> list[MethodOutput]:
+    """The same frontend and graph without the IMU (the method's presets, `vision_only`: projection factors only,
+    two-view start with unit baseline, PnP pose guesses); scale is unobservable, so it is scored after Sim3
+    alignment."""
+    res = run_vio(capture_dir, out, dataclasses.replace(method, refine=False))
     return [MethodOutput(r.method, r.trajectory, r.wall_s, r.latencies_ms, "sim3", r.info) for r in res]

@@ -44,7 +44,8 @@ class Case:
 class Method:
     name: str  # the `method` column of results.json
     kind: str  # imu_only | vio (vio also yields `batch` when refine is on) | vision_only
-    overrides: tuple[str, ...] = ()  # `section.key=value` config overrides
+    presets: tuple[str, ...] = ()  # named config presets (vio/presets/NAME.yaml), applied first
+    overrides: tuple[str, ...] = ()  # `section.key=value` config overrides, applied after the presets
     refine: bool = False  # also produce the batch optimum (row `batch`) from the same run
 
 
@@ -60,8 +61,8 @@ class Suite:
 IMU_ONLY = Method("imu_only", "imu_only")
 VIO_AND_BATCH = Method("vio", "vio", refine=True)
 VIO = Method("vio", "vio")
-VISION_ONLY = Method("vision_only", "vision_only")
-FIXED_LAG = Method("vio_lag3s", "vio", ("backend.smoother=fixed_lag", "backend.lag_s=3.0"))
+VISION_ONLY = Method("vision_only", "vision_only", presets=("vision_only",))
+FIXED_LAG = Method("vio_lag3s", "vio", presets=("fixed_lag",))
 
 
 def _grid(

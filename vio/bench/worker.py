@@ -103,9 +103,9 @@ def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dic
     if method.kind == "imu_only":
         outputs = methods.run_imu_only(capture, out)
     elif method.kind == "vio":
-        outputs = methods.run_vio(capture, out, method.name, tuple(method.overrides), method.refine)
+        outputs = methods.run_vio(capture, out, method)
     else:
-        outputs = methods.run_vision_only(capture, out, tuple(method.overrides))
+        outputs = methods.run_vision_only(capture, out, method)
     rows = []
     for o in outputs:
         try:
@@ -141,7 +141,8 @@ def main(task_path: str) -> int:
             )
             result = {"capture": task["capture"]}
         else:
-            method = Method(**{**task["method"], "overrides": tuple(task["method"]["overrides"])})
+            fields = task["method"]
+            method = Method(**{**fields, "presets": tuple(fields["presets"]), "overrides": tuple(fields["overrides"])})
             out = Path(task["out"])
             out.mkdir(parents=True, exist_ok=True)
             result = {"rows": run_method(case, method, Path(task["capture"]), out)}

@@ -1,12 +1,13 @@
-"""`backend.use_imu=false`: the same frontend and projection-factor graph without any inertial factor, scored
-after Sim3 alignment (monocular scale is a gauge, fixed by the unit baseline of the two-view start)."""
+"""The `vision_only` preset (`estimator.mode: vision_only`): the same frontend and projection-factor graph
+without any inertial factor, scored after Sim3 alignment (monocular scale is a gauge, fixed by the unit
+baseline of the two-view start)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from backend.visual_only import pnp_pose, two_view
+from backend.vision_only import pnp_pose, two_view
 from vio.config import load_config
 from vio.geometry import inv_T
 from vio.metrics import evaluate
@@ -39,8 +40,9 @@ def visual_run(sim_capture, tmp_path_factory):
     capture = sim_capture("orbit", 6.0)
     out = tmp_path_factory.mktemp("visual_only_run")
     # Without the IMU, denser keyframes chain the views better (20 px, the inertial default: 123 mm Sim3 ATE here)
-    cfg = load_config(None, ["run.progress=false", "backend.use_imu=false", "keyframes.min_parallax_px=12"])
-    summary = run_capture(capture, out, cfg)
+    cfg = load_config(None, ["run.progress=false"], presets=["vision_only"])
+    assert cfg.estimator.mode == "vision_only" and cfg.keyframes.min_parallax_px == 12.0
+    summary = run_capture(capture, out, cfg).summary
     return capture, out, summary
 
 

@@ -1,4 +1,4 @@
-"""Initialisation without ground truth.
+"""Initialisation without ground truth: the closed-form guesses.
 
 Static start: over a window at rest, the mean accelerometer reading is the reaction to gravity (gives roll and
 pitch; yaw is the free gauge and set to 0) and the mean gyro reading is the gyro bias.
@@ -23,7 +23,6 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
-from vio.config import BackendConfig
 from vio.records import GRAVITY_M_S2, ImuSeries
 
 log = logging.getLogger(__name__)
@@ -54,11 +53,13 @@ def rotation_to_z_up(g_dir: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
-def static_start(imu: ImuSeries, t0_ns: int, t1_ns: int, cfg: BackendConfig) -> tuple[np.ndarray, np.ndarray] | None:
+def static_start(
+    imu: ImuSeries, t0_ns: int, t1_ns: int, max_gyro_std: float, max_acc_std: float
+) -> tuple[np.ndarray, np.ndarray] | None:
     """(world_R_body (3, 3), gyro bias (3,) rad/s) if the IMU is at rest over [t0, t1], else None.
 
     At rest: the 0.1 s block means of the gyro and accelerometer vary (norm of their standard deviation) less
-    than `static_init_max_gyro` (rad/s) and `static_init_max_acc_std` (m/s^2). Block means ignore motor or hand
+    than `max_gyro_std` (rad/s) and `max_acc_std` (m/s^2). Block means ignore motor or hand
     vibration (EuRoC's MAV idles with its rotors running: 1 m/s^2 raw accelerometer noise at rest).
     """
     w = imu.window(t0_ns, t1_ns)
@@ -70,29 +71,36 @@ def static_start(imu: ImuSeries, t0_ns: int, t1_ns: int, cfg: BackendConfig) -> 
     acc_blocks = w.acc[:n].reshape(-1, n_block, 3).mean(axis=1)
     gyro_var = float(np.linalg.norm(gyro_blocks.std(axis=0)))
     acc_var = float(np.linalg.norm(acc_blocks.std(axis=0)))
-    if gyro_var > cfg.static_init_max_gyro or acc_var > cfg.static_init_max_acc_std:
+    if gyro_var > max_gyro_std or acc_var > max_acc_std:
         return None
     f = w.acc.mean(axis=0)  # specific force at rest = body_R_world (0, 0, +g)
     world_R_body = rotation_to_z_up(-f)
     return world_R_body, w.gyro.mean(axis=0)
 
 
+@dataclass(frozen=True)
+class WindowMeasurements:
+    """What the moving start sees of its window of keyframes ks."""
+
+    ks: list[int]  # keyframe indices, in time order
+    A_R_body: dict[int, np.ndarray]  # k -> (3, 3) gyro-integrated rotation in the frame A of ks[0]'s body
+    delta_pv: dict[int, tuple[np.ndarray, np.ndarray, float]]  # k -> (dP m, dV m/s, dt s) from the keyframe before
+    observations: dict[int, dict[int, np.ndarray]]  # track id -> {k: normalized image coordinates (2,)}
+    body_T_cam: np.ndarray  # (4, 4)
+    sigma_norm: float  # bearing noise in normalized units times a typical depth
+
+
 def linear_alignment(
-    ks: list[int],
-    A_R_body: dict[int, np.ndarray],
-    delta_pv: dict[int, tuple[np.ndarray, np.ndarray, float]],
-    observations: dict[int, dict[int, np.ndarray]],
-    body_T_cam: np.ndarray,
-    sigma_norm: float,
-    fix_gravity: np.ndarray | None = None,
+    w: WindowMeasurements, fix_gravity: np.ndarray | None = None
 ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], np.ndarray, dict[int, np.ndarray]]:
     """Solve the linear system of the module docstring in frame A (p_{ks[0]} = 0).
 
-    delta_pv[k] = (dP, dV, dt) preintegrated from the keyframe before k to k (body frame of the earlier one);
-    observations[j] = {k: normalized (2,)}; sigma_norm is the bearing noise in normalized units times a typical
-    depth. With fix_gravity (3,) the gravity is known. Returns positions, velocities, gravity (3,), points.
-    Solved as sparse normal equations (a dense solve of the ~2000 unknowns took 15 s here).
+    delta_pv[k] is preintegrated in the body frame of the keyframe before k. With fix_gravity (3,) the gravity is
+    known. Returns positions, velocities, gravity (3,), points. Solved as sparse normal equations (a dense solve
+    of the ~2000 unknowns took 15 s here).
     """
+    ks, A_R_body, delta_pv, observations = w.ks, w.A_R_body, w.delta_pv, w.observations
+    body_T_cam, sigma_norm = w.body_T_cam, w.sigma_norm
     nk = len(ks)
     idx = {k: i for i, k in enumerate(ks)}
     pts = [j for j, obs in observations.items() if sum(k in idx for k in obs) >= 2]
@@ -174,20 +182,13 @@ def linear_alignment(
     return p, v, g, points
 
 
-def moving_start(
-    ks: list[int],
-    A_R_body: dict[int, np.ndarray],
-    delta_pv: dict[int, tuple[np.ndarray, np.ndarray, float]],
-    observations: dict[int, dict[int, np.ndarray]],
-    body_T_cam: np.ndarray,
-    sigma_norm: float,
-    bias_gyro: np.ndarray,
-) -> InitialGuess:
+def moving_start(w: WindowMeasurements, bias_gyro: np.ndarray) -> InitialGuess:
     """Closed-form metric initial guess of the window (see the module docstring), rotated to the z-up world."""
-    _, _, g_free, _ = linear_alignment(ks, A_R_body, delta_pv, observations, body_T_cam, sigma_norm)
+    ks, A_R_body = w.ks, w.A_R_body
+    _, _, g_free, _ = linear_alignment(w)
     g_norm = float(np.linalg.norm(g_free))
     g_fixed = g_free / max(g_norm, 1e-9) * GRAVITY_M_S2
-    p, v, g, points = linear_alignment(ks, A_R_body, delta_pv, observations, body_T_cam, sigma_norm, g_fixed)
+    p, v, g, points = linear_alignment(w, g_fixed)
     world_R_A = rotation_to_z_up(g)
     poses = {}
     for k in ks:

@@ -1,0 +1,126 @@
+"""The state every part of the estimator works on: the smoother, the latest value of every variable, every
+factor (for the batch refinement), keyframe times, preintegrations and per-landmark observation counts, with the
+small helpers that edit them. The estimator owns one and passes it to its parts explicitly.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from backend import factors as fb
+from backend.keys import B, V, X
+from backend.smoother import Smoother, SolverFailure
+from vio.records import StateEstimate
+
+log = logging.getLogger(__name__)
+
+Warn = Callable[[str], None]
+
+
+def value_of(values: gtsam.Values, key: int) -> Any:
+    """The value of a key of any of the four kinds (X pose, V velocity, B bias, L point)."""
+    sym = chr(gtsam.Symbol(key).chr())
+    if sym == "x":
+        return values.atPose3(key)
+    if sym == "v":
+        return values.atVector(key)
+    if sym == "b":
+        return values.atConstantBias(key)
+    return values.atPoint3(key)
+
+
+class GraphState:
+    """Variables, factors and bookkeeping of one estimator run (see the module docstring)."""
+
+    def __init__(
+        self,
+        smoother: Smoother,
+        calibration: tuple[gtsam.Cal3_S2, gtsam.Pose3],
+        pixel_noise: gtsam.noiseModel.Base,
+        window_keyframes: int,
+        warn: Warn,
+    ) -> None:
+        self.smoother = smoother
+        self.K, self.body_P_cam = calibration
+        self.pixel_noise = pixel_noise
+        self.window_keyframes = window_keyframes  # keyframes refreshed after each update and used to triangulate
+        self.warn = warn
+        self.values = gtsam.Values()  # latest estimate of every variable ever added
+        self.all_factors = gtsam.NonlinearFactorGraph()  # every measurement factor + the initial priors (batch)
+        self.t_ns: dict[int, int] = {}  # keyframe index -> time, ns
+        self.pims: dict[int, Any] = {}  # k -> preintegration from the keyframe before k
+        self.num_obs: dict[int, int] = {}  # landmark id -> projection factors in the graph
+        self.last_obs: dict[int, int] = {}  # landmark id -> last keyframe with a projection factor on it
+        self.bias = gtsam.imuBias.ConstantBias()  # latest bias estimate (preintegration uses it)
+        self.last_k: int | None = None
+        self.dirty = False  # True when the smoother holds estimates not yet pulled into `values`
+
+    # ------------------------------------------------------------------ values
+    def pose(self, k: int) -> np.ndarray:
+        """world_T_body (4, 4) of keyframe k."""
+        return self.values.atPose3(X(k)).matrix()
+
+    def set(self, key: int, value: Any) -> None:
+        if self.values.exists(key):
+            self.values.update(key, value)
+        else:
+            self.values.insert(key, value)
+
+    def absorb(self, est: gtsam.Values) -> None:
+        for key in est.keys():
+            self.set(key, value_of(est, key))
+
+    def sync(self) -> None:
+        """Pull the full smoother estimate (every keyframe and landmark) into `values`."""
+        if self.dirty:
+            try:
+                self.absorb(self.smoother.estimate())
+            except SolverFailure as exc:
+                self.warn(f"final estimate failed ({exc}); keeping the last per-keyframe estimates")
+            self.dirty = False
+
+    # ------------------------------------------------------------------ factors
+    def add(self, graph: gtsam.NonlinearFactorGraph, factor: gtsam.NonlinearFactor) -> None:
+        """Add a measurement factor to the update `graph` and to the whole graph kept for the batch refinement."""
+        graph.add(factor)
+        self.all_factors.add(factor)
+
+    def add_projection(self, graph: gtsam.NonlinearFactorGraph, k: int, j: int, uv: np.ndarray) -> None:
+        """The projection factor of landmark j seen at undistorted pixel uv (2,) in keyframe k."""
+        self.add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.pixel_noise))
+        self.num_obs[j] = self.num_obs.get(j, 0) + 1
+        self.last_obs[j] = k
+
+    # ------------------------------------------------------------------ windows
+    def window(self, k: int) -> range:
+        """Keyframes whose estimates are refreshed after each update and used to triangulate new landmarks."""
+        return range(max(k - self.window_keyframes, 0), k + 1)
+
+    def recent_keys(self, k: int) -> list[int]:
+        return [key for kk in self.window(k) for key in (X(kk), V(kk), B(kk)) if self.smoother.has(key)]
+
+    def known_poses(self) -> dict[int, np.ndarray]:
+        """world_T_body of the keyframes in the window of the latest keyframe."""
+        return {k: self.pose(k) for k in self.window(self.last_k) if self.values.exists(X(k))}
+
+    def state(self, k: int, solve_ms: float, use_imu: bool) -> StateEstimate:
+        """Keyframe k's estimate (no velocity or bias without the IMU)."""
+        if not use_imu:
+            return StateEstimate(
+                k, self.t_ns[k], self.pose(k), np.zeros(3), np.zeros(3), np.zeros(3), solve_ms=solve_ms
+            )
+        b = self.values.atConstantBias(B(k))
+        return StateEstimate(
+            k,
+            self.t_ns[k],
+            self.pose(k),
+            np.asarray(self.values.atVector(V(k))),
+            b.gyroscope(),
+            b.accelerometer(),
+            solve_ms=solve_ms,
+        )

@@ -1,0 +1,121 @@
+"""The inertial start: buffer the first `window_s` of keyframes, guess their states (static start when the IMU
+rests, otherwise the closed-form moving start of alignment.py), then refine the window jointly and seed the
+smoother (window.py)."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import gtsam
+import numpy as np
+
+from backend import factors as fb
+from backend.admission import LandmarkAdmission
+from backend.anchoring import PositionAnchor
+from backend.graph_state import GraphState
+from backend.initialisation.alignment import InitialGuess, WindowMeasurements, moving_start, static_start
+from backend.initialisation.window import Start, elapsed_ms, start_window
+from backend.keys import B, V, X
+from backend.landmarks import LandmarkBook
+from vio.config import InitialisationConfig
+from vio.records import CameraCalib, ImuSeries
+
+log = logging.getLogger(__name__)
+
+
+class InertialInitialiser:
+    """Buffers keyframes until a start succeeds (`add` returns it)."""
+
+    def __init__(
+        self,
+        cfg: InitialisationConfig,
+        state: GraphState,
+        book: LandmarkBook,
+        admission: LandmarkAdmission,
+        imu: ImuSeries,
+        camera: CameraCalib,
+        pixel_sigma: float,
+        anchor: PositionAnchor | None,
+    ) -> None:
+        self.cfg, self.state, self.book, self.admission = cfg, state, book, admission
+        self.imu, self.camera, self.pixel_sigma, self.anchor = imu, camera, pixel_sigma, anchor
+        self.pending: list[int] = []  # keyframes waiting for the start
+
+    def add(self, k: int) -> Start | None:
+        self.pending.append(k)
+        ks, st = self.pending, self.state
+        if (st.t_ns[ks[-1]] - st.t_ns[ks[0]]) * 1e-9 < self.cfg.window_s or len(ks) < 4:
+            return None
+        guess = self._guess(ks)
+        if guess is None:
+            self.pending = ks[1:]
+            return None
+        t0 = time.perf_counter()
+        graph, values = self._window_graph(ks, guess)
+        if not start_window(st, self.admission, graph, values, ks[-1], "initialisation"):
+            self.pending = ks[1:]
+            return None
+        st.bias = st.values.atConstantBias(B(ks[-1]))
+        start = Start(guess.kind, ks, elapsed_ms(t0))
+        log.info("initialised (%s start) with %d keyframes, %d landmarks", guess.kind, len(ks), len(st.num_obs))
+        self.pending = []
+        return start
+
+    def _guess(self, ks: list[int]) -> InitialGuess | None:
+        st, cfg = self.state, self.cfg
+        rest = static_start(self.imu, st.t_ns[ks[0]], st.t_ns[ks[-1]], cfg.static_max_gyro, cfg.static_max_acc_std)
+        if rest is not None:
+            world_R_body, bias_gyro = rest
+            T = np.eye(4)
+            T[:3, :3] = world_R_body
+            return InitialGuess({k: T for k in ks}, {k: np.zeros(3) for k in ks}, bias_gyro, np.zeros(3), {}, "static")
+        A_R = {ks[0]: np.eye(3)}
+        delta = {}
+        for a, b in zip(ks[:-1], ks[1:], strict=True):
+            pim = st.pims[b]
+            A_R[b] = A_R[a] @ pim.deltaRij().matrix()
+            delta[b] = (np.asarray(pim.deltaPij()), np.asarray(pim.deltaVij()), pim.deltaTij())
+        obs = {}
+        for j, tr in self.book.tracks.items():
+            views = {k: self.book.normalized(uv)[0] for k, uv in tr.views.items() if k in A_R}
+            if len(views) >= 3:
+                obs[j] = views
+        if len(obs) < 10:
+            st.warn(f"moving start at keyframe {ks[-1]}: only {len(obs)} tracks span the window; waiting")
+            return None
+        sigma_norm = self.pixel_sigma / self.camera.fx * 2.0
+        window = WindowMeasurements(ks, A_R, delta, obs, self.camera.body_T_cam, sigma_norm)
+        guess = moving_start(window, st.bias.gyroscope())
+        if not 0.85 < guess.gravity_norm_free / 9.81 < 1.15:
+            st.warn(
+                f"moving start at keyframe {ks[-1]}: gravity {guess.gravity_norm_free:.2f} m/s^2 from the linear "
+                "alignment is implausible (too little excitation); sliding the window"
+            )
+            return None
+        return guess
+
+    def _window_graph(self, ks: list[int], guess: InitialGuess) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        st, cfg = self.state, self.cfg
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        bias0 = gtsam.imuBias.ConstantBias(guess.bias_acc, guess.bias_gyro)
+        v_sigma = cfg.velocity_sigma_static if guess.kind == "static" else cfg.velocity_sigma_moving
+        first = gtsam.Pose3(guess.world_T_body[ks[0]])
+        priors = [
+            fb.pose_prior_gravity_aware(ks[0], first, cfg.tilt_sigma_rad, cfg.gauge_sigma_rad, cfg.gauge_sigma_m),
+            fb.velocity_prior(ks[0], guess.v_world[ks[0]], v_sigma),
+            fb.bias_prior(ks[0], bias0, cfg.bias_sigma_acc, cfg.bias_sigma_gyro),
+        ]
+        for f in priors:
+            st.add(graph, f)
+        for k in ks:
+            values.insert(X(k), gtsam.Pose3(guess.world_T_body[k]))
+            values.insert(V(k), np.asarray(guess.v_world[k], float))
+            values.insert(B(k), bias0)
+        for a, b in zip(ks[:-1], ks[1:], strict=True):
+            st.add(graph, fb.imu_factor(a, b, st.pims[b]))
+        for k in ks:
+            if self.anchor is not None:  # matched now, added once aligned (see backend.anchoring)
+                self.anchor.match(k, st.t_ns[k])
+        self.admission.admit_window(guess.world_T_body, graph, values)
+        return graph, values

@@ -1,0 +1,153 @@
+"""Landmark re-identification: new tracks that are landmarks already in the map close loops.
+
+Per keyframe, before its tracks are booked: the pose is predicted from the IMU, every track is described
+(gravity-aligned ORB, oriented from the predicted attitude), the landmarks seen by their own tracks get new
+snapshots in the atlas (backend/atlas.py), and the tracks the backend has never seen are matched against the
+atlas. A matched track is aliased to the old landmark: its views become that landmark's projection factors (the
+first one gated by the search radius instead of `max_reprojection_px`, since it may close a loop after drift).
+When a later view disagrees with the landmark the alias ends (`unalias`) and the track continues as a landmark of
+its own.
+
+Re-observations of old landmarks (unobserved for `defer_keyframes`) wait in a loop batch that enters the
+smoother every `flush_keyframes`: a factor on an old landmark makes iSAM2 re-eliminate every clique from that
+landmark to the root (most of the graph after a loop), so batching pays that once per flush instead of once per
+keyframe (measured on the 60 s orbit: see docs/BENCHMARKS.md). After a flush the landmark sits near the root
+(iSAM2 orders the keys of new factors last) and its next views are cheap.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from backend.atlas import LandmarkAtlas, gravity_angles_deg
+from backend.graph_state import GraphState
+from backend.keys import L, V, X, track_of
+from backend.landmarks import LandmarkBook
+from backend.smoother import SolverFailure
+from vio.config import ReidentificationConfig
+from vio.descriptors import Describe
+from vio.records import ReidentificationEvent
+
+
+class Reidentification:
+    """Aliases of re-identified tracks, the atlas they are matched against, and the batch of loop factors."""
+
+    def __init__(
+        self, cfg: ReidentificationConfig, enabled: bool, book: LandmarkBook, state: GraphState, body_T_cam: np.ndarray
+    ) -> None:
+        self.cfg, self.enabled, self.book, self.state = cfg, enabled, book, state
+        self.body_T_cam = np.asarray(body_T_cam, float)
+        self.atlas = LandmarkAtlas(book.K, body_T_cam, cfg)
+        self._alias: dict[int, int] = {}  # track segment id -> landmark id it re-identified
+        self._alias_rev: dict[int, int] = {}  # landmark id -> track segment id
+        self._now: set[int] = set()  # landmarks re-identified at the current keyframe
+        self._since_refresh = 0
+        self._loops = gtsam.NonlinearFactorGraph()  # re-observations of old landmarks, waiting for the next flush
+        self._loop_landmarks: set[int] = set()
+        self._loop_budget = cfg.max_loops
+        self.num_reidentified = 0
+        self.num_loop_flushes = 0
+        self.events: list[ReidentificationEvent] = []
+
+    def apply_aliases(self, ids: np.ndarray) -> np.ndarray:
+        return np.array([self._alias.get(j, j) for j in ids.tolist()], np.int64)
+
+    def gate_px(self, j: int, default_px: float) -> float:
+        """Reprojection gate of a new view of admitted landmark j: the search radius while j is aliased."""
+        return self.cfg.radius_px if j in self._alias_rev else default_px
+
+    def on_admit(self, j: int, p_world: np.ndarray) -> None:
+        """A landmark entered the graph at a steady-state keyframe: it becomes a re-identification candidate."""
+        self.atlas.set_position(j, p_world)
+
+    def reidentify(
+        self, prev: int, k: int, ids: np.ndarray, uv: np.ndarray, uv_distorted: np.ndarray, describe: Describe
+    ) -> np.ndarray:
+        """Landmark ids for keyframe k's tracks (undistorted uv (N, 2)) with re-identified new tracks replaced by
+        their old landmark."""
+        self._now = set()
+        if not self.enabled:
+            return ids
+        self._refresh_atlas()
+        st = self.state
+        nav = st.pims[k].predict(gtsam.NavState(st.values.atPose3(X(prev)), st.values.atVector(V(prev))), st.bias)
+        world_T_body = nav.pose().matrix()
+        angles = gravity_angles_deg(world_T_body @ self.body_T_cam, uv, self.book.K)
+        desc, ok = describe(uv_distorted, angles)
+        seen = np.array([j in self.book.tracks and self.book.tracks[j].admitted for j in ids.tolist()], bool)
+        self.atlas.remember(world_T_body, ids[seen], desc[seen], ok[seen])
+        new = np.flatnonzero([j not in self.book.tracks for j in ids.tolist()])
+        if not len(new):
+            return ids
+        max_age = self.cfg.max_age_keyframes
+
+        def alive(j: int) -> bool:
+            return st.smoother.has(L(j)) and (max_age <= 0 or k - st.last_obs.get(j, k) <= max_age)
+
+        found = self.atlas.match(world_T_body, uv[new], desc[new], ok[new], set(ids.tolist()), alive)
+        out = ids.copy()
+        for row, lid in found.items():
+            if k - st.last_obs.get(lid, k) > self.cfg.defer_keyframes:  # an old landmark: a loop link
+                if self._loop_budget <= 0:
+                    continue
+                self._loop_budget -= 1
+            src = int(ids[new[row]])
+            views = self.book.tracks[lid].views
+            k0 = min(views)
+            self.events.append(
+                ReidentificationEvent(st.t_ns[k], lid, np.array(uv_distorted[new[row]], float), st.t_ns[k0], views[k0])
+            )
+            self._alias[src], self._alias_rev[lid] = lid, src
+            out[new[row]] = lid
+            self._now.add(lid)
+        self.num_reidentified += len(self._now)
+        return out
+
+    def _refresh_atlas(self) -> None:
+        """Every `refresh_keyframes`, pull all landmark positions from the smoother into the atlas."""
+        self._since_refresh += 1
+        if self._since_refresh < max(self.cfg.refresh_keyframes, 1):
+            return
+        self._since_refresh = 0
+        try:
+            est = self.state.smoother.estimate()
+        except SolverFailure:
+            return
+        for j in list(self.atlas.rows):
+            if est.exists(L(j)):
+                self.atlas.set_position(j, est.atPoint3(L(j)))
+
+    def route(self, graph: gtsam.NonlinearFactorGraph, j: int, k: int) -> gtsam.NonlinearFactorGraph:
+        """Where a new view of landmark j goes: the keyframe's graph, or the loop batch when j is an old landmark
+        re-identified (not observed for `defer_keyframes`) and waiting for the next flush."""
+        if j in self._loop_landmarks:
+            return self._loops
+        if j in self._now and k - self.state.last_obs.get(j, k) > self.cfg.defer_keyframes:
+            self._loop_landmarks.add(j)
+            return self._loops
+        return graph
+
+    def flush(self, graph: gtsam.NonlinearFactorGraph, k: int) -> None:
+        """Every `flush_keyframes`, move the waiting loop factors into the keyframe's graph and renew the budget
+        of loop links (`max_loops` old landmarks re-identified per flush period)."""
+        if k % max(self.cfg.flush_keyframes, 1):
+            return
+        self._loop_budget = self.cfg.max_loops
+        if self._loops.size():
+            graph.push_back(self._loops)
+            self.drop_loops()
+            self.num_loop_flushes += 1
+
+    def drop_loops(self) -> None:
+        """Forget the waiting loop factors (the smoother is being rebuilt)."""
+        self._loops = gtsam.NonlinearFactorGraph()
+        self._loop_landmarks = set()
+
+    def unalias(self, j: int) -> int:
+        """End landmark j's alias; returns the track id that produced j's current view (j's own when not aliased)."""
+        src = self._alias_rev.pop(j, None)
+        if src is None:
+            return track_of(j)
+        self._alias.pop(src, None)
+        return track_of(src)
