@@ -36,9 +36,9 @@ def test_two_view_and_pnp_recover_a_known_motion():
 
 
 @pytest.fixture(scope="module")
-def visual_run(sim_capture, tmp_path_factory):
+def vision_run(sim_capture, tmp_path_factory):
     capture = sim_capture("orbit", 6.0)
-    out = tmp_path_factory.mktemp("visual_only_run")
+    out = tmp_path_factory.mktemp("vision_only_run")
     # Without the IMU, denser keyframes chain the views better (20 px, the inertial default: 123 mm Sim3 ATE here)
     cfg = load_config(None, ["run.progress=false"], presets=["vision_only"])
     assert cfg.estimator.mode == "vision_only" and cfg.keyframes.min_parallax_px == 12.0
@@ -46,8 +46,8 @@ def visual_run(sim_capture, tmp_path_factory):
     return capture, out, summary
 
 
-def test_visual_only_orbit_is_accurate_up_to_scale(visual_run):
-    capture, out, summary = visual_run
+def test_vision_only_orbit_is_accurate_up_to_scale(vision_run):
+    capture, out, summary = vision_run
     assert summary["status"] == "ok" and summary["initialisation"] == "visual"
     assert summary["recoveries"] == [] and summary["num_landmarks"] > 100
     gt = read_trajectory(capture / "mav0" / "state_groundtruth_estimate0" / "data.csv")
