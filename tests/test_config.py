@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
 from vio.config import Config, load_config, parse_overrides, preset_names
@@ -79,3 +82,11 @@ def test_presets_apply_in_order_before_file_and_overrides(tmp_path):
     assert cfg.smoother.kind == "fixed_lag" and cfg.smoother.lag_s == 5.0  # the override wins over both
     with pytest.raises(ConfigError, match="unknown preset 'nope'; known: fixed_lag, vision_only"):
         load_config(None, [], presets=["nope"])
+
+
+def test_cli_names_an_unknown_preset_and_a_moved_key_in_one_line(tmp_path):
+    for extra, msg in ((["--preset", "nope"], "unknown preset 'nope'"), (["--set", "backend.reid=false"], "is now")):
+        cmd = [sys.executable, "-m", "vio.cli", "run", str(tmp_path), "--out", str(tmp_path / "o"), *extra]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        assert res.returncode == 2 and msg in res.stderr and "Traceback" not in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1
