@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vio.eqvio import default_eqvio_path, is_eqvio_file, read_eqvio
 from vio.errors import CaptureError
+from vio.readers.eqvio import default_eqvio_path, is_eqvio_file, read_eqvio
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,9 @@ import pytest
 
 from tests.conftest import ROOT, shared_path
 from vio.atomic import atomic_open, write_text
-from vio.capture import read_asl
 from vio.errors import CalibrationError, CaptureError
 from vio.kalibr import camera_yaml_text, imu_yaml_text, read_camera_yaml, read_imu_yaml
+from vio.readers.asl import read_asl
 from vio.records import CameraCalib, ImuCalib
 
 
@@ -102,8 +102,10 @@ def test_cli_help_and_errors_are_one_line(tmp_path):
     assert "missing" in r.stderr
 
 
-def test_output_folder_in_the_way_is_one_clear_error(tmp_path, sim_capture):
-    capture = sim_capture("orbit", 2.0, images=False)
+def test_output_folder_in_the_way_is_one_clear_error(tmp_path):
+    from vio.readers.eqvio import default_eqvio_path
+
+    capture = default_eqvio_path()  # a valid capture that opens fast (`vio run` opens it before the output folder)
     blocker = tmp_path / "taken"
     blocker.write_text("not a folder")
     cmd = [sys.executable, "-m", "vio.cli", "run", str(capture), "--out", str(blocker)]

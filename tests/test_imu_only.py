@@ -108,7 +108,7 @@ def test_gravity_align_keeps_heading():
 def _sim_imu_only(sim_capture, imu_grade: str, duration_s: float):
     pytest.importorskip("vio.sim.api", reason="the simulator (vio.sim.api) has not landed")
     from vio.bench.methods import gt_state_at
-    from vio.capture import read_asl
+    from vio.readers.asl import read_asl
 
     cap = read_asl(sim_capture("orbit", duration_s, imu_grade, 0, images=False))
     T0, v0 = gt_state_at(cap.ground_truth, int(cap.imu.t_ns[0]))

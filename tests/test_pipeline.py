@@ -11,10 +11,10 @@ import pytest
 from conftest import ROOT, shared_path
 
 from vio.config import load_config
-from vio.eqvio import default_eqvio_path, read_eqvio
 from vio.errors import CaptureError, EstimationError
 from vio.pipeline import run_capture
 from vio.positions import read_positions
+from vio.readers.eqvio import default_eqvio_path, read_eqvio
 from vio.trajio import read_trajectory
 
 GT_PARTS = ("euroc_v1_01", "mav0", "state_groundtruth_estimate0", "data.csv")

@@ -192,7 +192,7 @@ def _sim_prediction_worst(pi: ImuPreintegrator, kf_ns: np.ndarray, state_at) -> 
 
 def test_ideal_simulated_orbit_matches_ground_truth(sim_capture):
     """The simulator's `ideal` IMU, read back from the ASL files, against its ground-truth states (0.1 s apart)."""
-    from vio.capture import read_asl
+    from vio.readers.asl import read_asl
 
     cap = read_asl(sim_capture("orbit", duration_s=4.0, imu="ideal", images=False))
     gt = cap.ground_truth
@@ -213,7 +213,7 @@ def test_ideal_simulated_orbit_matches_ground_truth(sim_capture):
 
 def test_ideal_simulated_orbit_off_grid_keyframes(sim_capture):
     """Keyframe times between IMU samples, against the simulator's continuous trajectory (the oracle)."""
-    from vio.capture import read_asl
+    from vio.readers.asl import read_asl
     from vio.sim.api import load_scenario
 
     cap = read_asl(sim_capture("orbit", duration_s=4.0, imu="ideal", images=False))
@@ -262,7 +262,7 @@ def test_noise_model_is_consistent_on_phone_grade_imu(sim_capture):
     """
     from gtsam.symbol_shorthand import B, V, X
 
-    from vio.capture import read_asl
+    from vio.readers.asl import read_asl
 
     cap = read_asl(sim_capture("orbit", duration_s=8.0, imu="phone", images=False))
     gt = cap.ground_truth
@@ -291,8 +291,8 @@ def test_real_euroc_imu_agrees_with_groundtruth_states():
     Measured over the whole flight: median 0.25 mm position and 5.0 mm/s velocity error with the ground-truth
     biases, 20 mm/s with zero bias (so the bias linearisation point is really used).
     """
-    from vio.capture import read_groundtruth_csv, read_imu_csv
     from vio.kalibr import read_imu_yaml
+    from vio.readers.asl import read_groundtruth_csv, read_imu_csv
 
     mav0 = shared_path("euroc_v1_01", "mav0")
     imu = read_imu_csv(mav0 / "imu0" / "data.csv")

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from tests.conftest import ROOT
-from vio.capture import read_asl
 from vio.errors import CaptureError, SimulationError
+from vio.readers import open_capture
+from vio.readers.asl import read_asl
 from vio.sim.api import load_scenario, simulate
 from vio.sim.render import Renderer, camera_poses
 from vio.sim.stl import read_stl
@@ -77,6 +78,27 @@ def test_capture_round_trip(tmp_path, sim_capture):
     assert np.abs(back.ground_truth.q_wxyz - cap.ground_truth.q_wxyz).max() < 1e-12
     assert back.camera.fx == cap.camera.fx and np.array_equal(back.camera.dist, cap.camera.dist)
     assert all(np.array_equal(back.load_image(i), cap.load_image(i)) for i in range(cap.num_frames))
+
+
+@pytest.mark.parametrize(("images", "needs"), [(True, ("camera", "imu")), (False, ("imu",))])
+def test_open_capture_checks_a_simulated_capture_without_changing_it(sim_capture, images, needs):
+    """`open_capture` (what the pipeline, the bench, `vio track` and `vio info` use) validates, and returns the
+    very data `read_asl` reads."""
+    root = sim_capture("orbit", duration_s=1.0, imu="phone", seed=3, images=images)
+    raw, cap = read_asl(root), open_capture(root, needs=needs)
+    assert cap.format == raw.format == "asl" and cap.warnings == raw.warnings == []
+    assert np.array_equal(cap.frame_t_ns, raw.frame_t_ns) and cap.num_frames == (20 if images else 0)
+    for field in ("t_ns", "gyro", "acc"):
+        assert np.array_equal(getattr(cap.imu, field), getattr(raw.imu, field)), field
+    for field in ("t_ns", "p_world", "q_wxyz", "v_world", "b_w", "b_a"):
+        assert np.array_equal(getattr(cap.ground_truth, field), getattr(raw.ground_truth, field)), field
+    assert cap.imu_calib == raw.imu_calib and cap.camera.fx == raw.camera.fx
+    assert np.array_equal(cap.camera.body_T_cam, raw.camera.body_T_cam)
+    if images:
+        assert np.array_equal(cap.load_image(19), raw.load_image(19))
+    else:
+        with pytest.raises(CaptureError, match="no camera frames"):
+            open_capture(root)  # the estimator's checks: an IMU-only capture is refused
 
 
 def test_trajectory_file_drives_the_simulator(tmp_path, sim_capture):

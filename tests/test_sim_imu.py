@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from vio.capture import read_asl
+from vio.readers.asl import read_asl
 from vio.records import GRAVITY_M_S2
 from vio.sim.api import load_scenario
 from vio.sim.imu import IMU_GRADES, simulate_imu

@@ -265,7 +265,7 @@ def test_euroc_still_camera_gives_still_tracks():
     Measured: 98% of the first frame's tracks survive; median per-track max displacement 1.71 px; relative 0.42 px;
     chaining 0.013 px.
     """
-    from vio.capture import read_asl
+    from vio.readers.asl import read_asl
 
     cap = read_asl(shared_path("euroc_v1_01"))
     trk = FeatureTracker(cap.camera, TrackerConfig())
@@ -326,7 +326,7 @@ def orbit_reprojection(capture_root, cfg: TrackerConfig) -> dict:
     CAP --duration 3`): `.venv/bin/python -c "import sys; sys.path.insert(0, 'tests'); import test_tracker as t;
     from vio.config import TrackerConfig; print(t.summary(t.orbit_reprojection('CAP', TrackerConfig())))"`.
     """
-    from vio.capture import read_asl
+    from vio.readers.asl import read_asl
 
     cap = read_asl(capture_root)
     cam = cap.camera

@@ -8,7 +8,8 @@ from conftest import shared_path
 from scipy.spatial.transform import Rotation
 
 from vio.errors import CaptureError
-from vio.trajio import Trajectory, ns_to_seconds_str, read_trajectory, seconds_to_ns, write_tum
+from vio.readers.tables import NS_PER_S, parse_time_ns
+from vio.trajio import Trajectory, ns_to_seconds_str, read_trajectory, write_tum
 
 
 def _random_traj(n: int = 50, seed: int = 0) -> Trajectory:
@@ -34,13 +35,13 @@ def test_tum_round_trip_is_nanosecond_exact(tmp_path):
      ("1.0000000005", 1_000_000_001), ("-1.5", -1_500_000_000), ("1.5e3", 1_500_000_000_000)],
 )  # fmt: skip
 def test_seconds_parsing_is_exact(text, ns):
-    assert seconds_to_ns(text) == ns
+    assert parse_time_ns(text, NS_PER_S) == ns
 
 
 def test_seconds_string_format():
     assert ns_to_seconds_str(1403715273262142976) == "1403715273.262142976"
     assert ns_to_seconds_str(5) == "0.000000005"
-    assert seconds_to_ns(ns_to_seconds_str(-7)) == -7
+    assert parse_time_ns(ns_to_seconds_str(-7), NS_PER_S) == -7
 
 
 def test_reads_euroc_groundtruth_csv():

@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from conftest import shared_path  # noqa: E402
 
-from vio.capture import Capture, read_asl  # noqa: E402
+from vio.capture import Capture  # noqa: E402
+from vio.readers.asl import read_asl  # noqa: E402
 from vio.records import StateEstimate  # noqa: E402
 
 RERUN = Path(sys.executable).parent / "rerun"  # installed beside the interpreter running the tests

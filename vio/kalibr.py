@@ -1,4 +1,15 @@
-"""Kalibr / EuRoC sensor YAML files (`sensor.yaml` for cam0 and imu0)."""
+"""Kalibr YAML: the one reader (and writer) of camera and IMU calibration files.
+
+Two layouts carry the same quantities in Kalibr's names and units:
+- ASL/EuRoC `sensor.yaml`, one per sensor: camera `intrinsics: [fu, fv, cu, cv]` (px), `resolution: [w, h]`,
+  `distortion_model: radtan`, `distortion_coefficients: [k1, k2, p1, p2]`, `T_BS` (the sensor's pose in the body
+  frame, 4x4 or OpenCV's {rows, cols, data}), `rate_hz`; IMU noise keys (below) and `T_BS` = identity.
+- Kalibr camchain: a `cam0:` section with `camera_model: pinhole`, `intrinsics`, `distortion_coeffs`,
+  `resolution`, `T_cam_imu` (the IMU's pose in the camera frame: the inverse of body_T_cam) and optional
+  `timeshift_cam_imu` (s, t_imu = t_cam + shift); IMU noise in an `imu0:` section or an IMU YAML (`update_rate`).
+IMU noise keys: gyroscope_noise_density rad/s/sqrt(Hz), accelerometer_noise_density m/s^2/sqrt(Hz),
+gyroscope_random_walk rad/s^2/sqrt(Hz), accelerometer_random_walk m/s^3/sqrt(Hz).
+"""
 
 from __future__ import annotations
 
@@ -9,10 +20,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from vio.errors import CalibrationError
+from vio.errors import CalibrationError, VioError
+from vio.geometry import inv_T
 from vio.records import CameraCalib, ImuCalib
 
-_IMU_KEYS = (
+IMU_KEYS = (
     "gyroscope_noise_density",
     "accelerometer_noise_density",
     "gyroscope_random_walk",
@@ -20,78 +32,110 @@ _IMU_KEYS = (
 )
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
-    """Read a YAML file, tolerating OpenCV's `%YAML:1.0` directive that EuRoC files carry."""
+def read_yaml(path: Path, error: type[VioError] = CalibrationError) -> dict[str, Any]:
+    """Read a YAML mapping, tolerating OpenCV's `%YAML:1.0` directive that EuRoC files carry.
+
+    Problems raise `error` (CalibrationError unless the caller reads another kind of file) naming the file.
+    """
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise CalibrationError(f"{path}: file not found") from None
+        raise error(f"{path}: file not found") from None
     text = re.sub(r"^%YAML[: ]\d\.\d.*$", "", text, flags=re.MULTILINE)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError:
-        raise CalibrationError(f"{path}: not valid YAML") from None
+        raise error(f"{path}: not valid YAML") from None
     if not isinstance(data, dict):
-        raise CalibrationError(f"{path}: expected a mapping of calibration keys")
+        raise error(f"{path}: expected a mapping of keys")
     return data
 
 
-def _matrix(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
-    value = data.get(key)
-    if value is None:
-        return np.eye(4)
+def _transform(path: Path, value: Any, key: str) -> np.ndarray:
+    """A (4, 4) rigid transform from a nested list, a flat list of 16, or OpenCV's {rows, cols, data}."""
     if isinstance(value, dict):
         value = value.get("data")
-    arr = np.asarray(value, dtype=float)
-    if arr.size != 16:
-        raise CalibrationError(f"{path}: {key} must have 16 entries, got {arr.size}")
-    T = arr.reshape(4, 4)
+    try:
+        T = np.asarray(value, dtype=float).reshape(4, 4)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: {key} must be a 4x4 matrix (16 numbers)") from None
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.allclose(T[3], [0, 0, 0, 1]):
         raise CalibrationError(f"{path}: {key} is not a rigid transform")
     return T
 
 
-def read_camera_yaml(path: Path) -> CameraCalib:
-    data = read_yaml(path)
+def _body_T_sensor(path: Path, sec: dict[str, Any]) -> np.ndarray:
+    """ASL `T_BS`: the sensor's pose in the body (IMU) frame; the identity when absent."""
+    value = sec.get("T_BS")
+    return np.eye(4) if value is None else _transform(path, value, "T_BS")
+
+
+def _camera(path: Path, sec: dict[str, Any], camchain: bool) -> CameraCalib:
+    """A pinhole-radtan camera from an ASL camera `sensor.yaml` or (`camchain`) a camchain's `cam0:` section."""
+    where, dist_key = ("cam0 ", "distortion_coeffs") if camchain else ("", "distortion_coefficients")
     try:
-        fx, fy, cx, cy = (float(v) for v in data["intrinsics"])
-        width, height = (int(v) for v in data["resolution"])
+        fx, fy, cx, cy = (float(v) for v in sec["intrinsics"])
+        width, height = (int(v) for v in sec["resolution"])
     except (KeyError, TypeError, ValueError):
-        raise CalibrationError(f"{path}: needs 'intrinsics: [fu, fv, cu, cv]' and 'resolution: [w, h]'") from None
-    model = str(data.get("distortion_model", "radtan")).lower()
-    if model not in ("radtan", "radial-tangential", "none"):
-        raise CalibrationError(f"{path}: distortion model '{model}' is not supported (radtan only)")
-    dist = np.asarray(data.get("distortion_coefficients", [0, 0, 0, 0]), dtype=float)
+        raise CalibrationError(
+            f"{path}: {where}needs 'intrinsics: [fu, fv, cu, cv]' and 'resolution: [w, h]'"
+        ) from None
+    model = str(sec.get("camera_model", "pinhole")).lower()
+    dmodel = str(sec.get("distortion_model", "radtan")).lower()
+    if model != "pinhole" or dmodel not in ("radtan", "radial-tangential", "none"):
+        raise CalibrationError(
+            f"{path}: camera model '{model}-{dmodel}' is not supported (pinhole-radtan only; "
+            "recalibrate with Kalibr's pinhole-radtan model)"
+        )
+    dist = np.asarray(sec.get(dist_key, [0.0, 0.0, 0.0, 0.0]), dtype=float)
     if dist.shape != (4,):
-        raise CalibrationError(f"{path}: distortion_coefficients must be [k1, k2, p1, p2]")
+        raise CalibrationError(f"{path}: {dist_key} must be [k1, k2, p1, p2]")
     if min(fx, fy) <= 0 or width <= 0 or height <= 0:
         raise CalibrationError(f"{path}: focal lengths and resolution must be positive")
-    return CameraCalib(
-        width=width,
-        height=height,
-        fx=fx,
-        fy=fy,
-        cx=cx,
-        cy=cy,
-        dist=dist,
-        body_T_cam=_matrix(path, data, "T_BS"),
-        rate_hz=float(data.get("rate_hz", 20.0)),
-    )
+    if not camchain:
+        body_T_cam = _body_T_sensor(path, sec)
+    elif "T_cam_imu" in sec:
+        body_T_cam = inv_T(_transform(path, sec["T_cam_imu"], "T_cam_imu"))
+    else:
+        raise CalibrationError(f"{path}: cam0 lacks T_cam_imu (the camera-IMU extrinsics from Kalibr's imucam step)")
+    rate_hz = float(sec.get("rate_hz", 30.0 if camchain else 20.0))
+    return CameraCalib(width, height, fx, fy, cx, cy, dist, body_T_cam, rate_hz)
+
+
+def imu_from_section(path: Path, sec: dict[str, Any]) -> ImuCalib:
+    """IMU noise from a mapping with Kalibr's noise keys; the rate from `update_rate` (Kalibr) or `rate_hz` (ASL)."""
+    missing = [k for k in IMU_KEYS if k not in sec]
+    if missing:
+        raise CalibrationError(f"{path}: missing IMU noise key(s) {', '.join(missing)} (Kalibr names)")
+    try:
+        values = {k: float(sec[k]) for k in IMU_KEYS}
+        rate = float(sec.get("update_rate", sec.get("rate_hz", 200.0)))
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: IMU noise values must be numbers") from None
+    if any(v <= 0 or not np.isfinite(v) for v in values.values()):
+        raise CalibrationError(f"{path}: IMU noise parameters must be positive and finite")
+    return ImuCalib(**values, rate_hz=rate)
+
+
+def read_camera_yaml(path: Path) -> CameraCalib:
+    """An ASL/EuRoC camera `sensor.yaml`."""
+    return _camera(path, read_yaml(path), camchain=False)
 
 
 def read_imu_yaml(path: Path) -> ImuCalib:
+    """An ASL/EuRoC IMU `sensor.yaml`; the IMU defines the body frame, so its `T_BS` must be the identity."""
     data = read_yaml(path)
-    missing = [k for k in _IMU_KEYS if k not in data]
-    if missing:
-        raise CalibrationError(f"{path}: missing IMU noise key(s) {', '.join(missing)} (Kalibr names)")
-    values = {k: float(data[k]) for k in _IMU_KEYS}
-    if any(v <= 0 or not np.isfinite(v) for v in values.values()):
-        raise CalibrationError(f"{path}: IMU noise parameters must be positive and finite")
-    T = _matrix(path, data, "T_BS")
-    if not np.allclose(T, np.eye(4), atol=1e-9):
+    imu = imu_from_section(path, data)
+    if not np.allclose(_body_T_sensor(path, data), np.eye(4), atol=1e-9):
         raise CalibrationError(f"{path}: the IMU defines the body frame; its T_BS must be the identity")
-    return ImuCalib(**values, rate_hz=float(data.get("rate_hz", 200.0)))
+    return imu
+
+
+def camchain_camera(path: Path, cam: dict[str, Any]) -> tuple[CameraCalib, int]:
+    """The camera of a camchain's `cam0:` section and its `timeshift_cam_imu` in ns (t_imu = t_cam + shift)."""
+    camera = _camera(path, cam, camchain=True)
+    return camera, int(round(float(cam.get("timeshift_cam_imu", 0.0)) * 1e9))
 
 
 def _fmt_matrix(T: np.ndarray) -> str:
@@ -100,6 +144,7 @@ def _fmt_matrix(T: np.ndarray) -> str:
 
 
 def camera_yaml_text(cam: CameraCalib, comment: str = "vio camera") -> str:
+    """An ASL camera `sensor.yaml` (what `read_camera_yaml` reads back exactly)."""
     d = ", ".join(f"{v:.12g}" for v in cam.dist)
     return (
         "%YAML:1.0\n"
@@ -115,6 +160,7 @@ def camera_yaml_text(cam: CameraCalib, comment: str = "vio camera") -> str:
 
 
 def imu_yaml_text(imu: ImuCalib, comment: str = "vio imu") -> str:
+    """An ASL IMU `sensor.yaml` (noise written with 7 significant digits)."""
     return (
         "%YAML:1.0\n"
         "sensor_type: imu\n"

@@ -11,11 +11,9 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Any
 
 from vio.atomic import atomic_open
 from vio.config import Config
-from vio.errors import CaptureError
 from vio.records import Frame
 
 log = logging.getLogger(__name__)
@@ -23,24 +21,16 @@ log = logging.getLogger(__name__)
 CSV_HEADER = "t_ns,track_id,u,v"
 
 
-def open_any_capture(capture_path: str | os.PathLike[str]) -> Any:
-    """The capture at `capture_path`, format detected by `vio.readers` (else read as ASL).
-
-    Tracking needs only the images and the camera calibration, so the estimator's final checks in
-    `vio.readers.open_capture` (an IMU stream, overlapping clocks) are not applied: `read_capture` is the same
-    reader without them. What tracking needs is checked by `track_capture` and the tracker.
-    """
-    try:
-        from vio.readers import read_capture
-    except ImportError:
-        from vio.capture import read_asl
-
-        return read_asl(capture_path)
-    return read_capture(capture_path)
-
-
-def track_capture(capture_path: str | os.PathLike[str], out_csv: str | os.PathLike[str], cfg: Config) -> dict:
+def track_capture(
+    capture_path: str | os.PathLike[str],
+    out_csv: str | os.PathLike[str],
+    cfg: Config,
+    calib: str | os.PathLike[str] | None = None,
+) -> dict:
     """Track every frame of a capture; write the tracks CSV; return a summary.
+
+    The capture is opened by `vio.readers.open_capture` (format detected, `calib` as in `vio run --calib`) with the
+    camera's checks only (frames, calibration, image size): tracking needs no IMU.
 
     Summary keys: `frames`, `rows` (observations written), `tracks` (distinct ids), `mean_tracks_per_frame`,
     `min_tracks_per_frame`, `wall_s`, `fps`, `realtime_factor` (capture duration / wall time; 0 for one frame),
@@ -48,13 +38,11 @@ def track_capture(capture_path: str | os.PathLike[str], out_csv: str | os.PathLi
     klt, fb_check, ncc, ransac, detect, write), `stats` (tracker counters).
     """
     from frontend.tracker import FeatureTracker
+    from vio.readers import open_capture
 
     t_start = time.perf_counter()
-    capture = open_any_capture(capture_path)
-    if capture.camera is None:
-        raise CaptureError("capture has no camera calibration (cam0/sensor.yaml)", capture_path)
-    if capture.num_frames == 0:
-        raise CaptureError("capture has no camera frames to track", capture_path)
+    capture = open_capture(capture_path, calib, needs=("camera",))
+    assert capture.camera is not None  # checked by open_capture
     tracker = FeatureTracker(capture.camera, cfg.tracker)
     open_s = time.perf_counter() - t_start
     decode_s = write_s = 0.0

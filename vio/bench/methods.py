@@ -42,9 +42,9 @@ def gt_state_at(capture_gt, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
 def run_imu_only(capture_dir: Path, out: Path) -> list[MethodOutput]:
     """The thesis's method: gravity-aligned strapdown integration with a filterpy Kalman filter (see imu_only)."""
     from vio.bench.imu_only import dead_reckon
-    from vio.capture import read_asl
+    from vio.readers import open_capture
 
-    cap = read_asl(capture_dir)
+    cap = open_capture(capture_dir, needs=("imu",))
     if cap.imu is None or cap.ground_truth is None:
         raise EstimationError(f"{capture_dir}: imu_only needs an IMU stream and ground truth (for the heading)")
     T0, v0 = gt_state_at(cap.ground_truth, int(cap.imu.t_ns[0]))

@@ -89,12 +89,12 @@ def score(case: Case, res, gt, capture_duration_s: float, folder: Path) -> dict[
 
 def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dict[str, Any]]:
     from vio.bench import methods
-    from vio.capture import read_asl
+    from vio.readers import open_capture
     from vio.trajio import Trajectory
 
     if method.kind not in ("imu_only", "vio", "vision_only"):
         raise ValueError(f"unknown method kind {method.kind!r}")
-    cap = read_asl(capture)
+    cap = open_capture(capture, needs=())  # scoring reads the ground truth and the frame span only
     if cap.ground_truth is None:
         raise ValueError(f"{capture}: no ground truth to score against")
     gt = Trajectory.from_groundtruth(cap.ground_truth)

@@ -2,12 +2,13 @@
 
 Formats (see docs/capture_formats.md): ASL/EuRoC and TUM-VI folders, ROS 1 bags, ROS 2 bags, MARS logger folders,
 OpenCamera Sensors folders, Sensor Logger exports, and gtsam's eqvio CSV (precomputed feature tracks).
-Format modules are imported lazily (this package is imported by `vio.capture`).
+Format modules are imported lazily, so that opening one format does not import the others' dependencies.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Collection
 from pathlib import Path
 
 from vio.capture import Capture
@@ -28,7 +29,7 @@ def detect_format(path: Path) -> str:
         if suffix in (".db3", ".mcap") or path.name == "metadata.yaml":
             return "ros2"
         if suffix == ".csv":
-            from vio.eqvio import is_eqvio_file
+            from vio.readers.eqvio import is_eqvio_file
 
             if is_eqvio_file(path):
                 return "eqvio"
@@ -89,7 +90,7 @@ def read_capture(path: str | os.PathLike[str], calib: str | os.PathLike[str] | N
         from vio.readers.sensorlogger import read_sensorlogger
 
         return read_sensorlogger(path, calib)
-    from vio.eqvio import read_eqvio
+    from vio.readers.eqvio import read_eqvio
 
     return read_eqvio(path)
 
@@ -99,6 +100,7 @@ def open_capture(
     calib: str | os.PathLike[str] | None = None,
     *,
     strict: bool = True,
+    needs: Collection[str] = ("camera", "imu"),
     image_topic: str | None = None,
     imu_topic: str | None = None,
 ) -> Capture:
@@ -106,12 +108,14 @@ def open_capture(
 
     Problems that make an estimate meaningless raise CaptureError/CalibrationError with one line naming the file,
     row and problem (with `strict=False` they are returned as warnings instead); safe ones go to `Capture.warnings`.
+    `needs` names the streams the caller uses ("camera", "imu"): the checks of a stream it does not need are skipped
+    (`vio track` needs the camera only, the IMU-only baseline the IMU only, scoring against ground truth neither).
     """
     from vio.readers.validate import finish_capture
 
     topics = {k: v for k, v in (("image_topic", image_topic), ("imu_topic", imu_topic)) if v}
     cap = read_capture(path, calib, **topics)
-    for msg in finish_capture(cap, Path(path), strict=strict):
+    for msg in finish_capture(cap, Path(path), strict=strict, needs=needs):
         cap.warn(msg)
     return cap
 

@@ -11,7 +11,7 @@ import numpy as np
 from vio.capture import Capture
 from vio.errors import CaptureError
 from vio.readers.calib import Calibration, find_calibration, load_calibration
-from vio.readers.tables import Table, ensure_increasing
+from vio.readers.tables import Table, ensure_increasing, increasing_mask
 from vio.readers.validate import gap_warnings
 from vio.records import ImuSeries
 
@@ -55,10 +55,8 @@ def merge_gyro_acc(gyro: Table, acc: Table, warnings: list[str]) -> ImuSeries:
 
 def frame_times(table: Table, warnings: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Validated frame times and the kept row indices into the table (repeats dropped, gaps reported)."""
-    kept = ensure_increasing(table, "frame", warnings)
-    keep = np.ones(len(table), bool)
-    keep[1:] = np.diff(table.t_ns) != 0
-    table = kept
+    keep = increasing_mask(table, "frame", warnings)
+    table = table.select(keep)
     warnings += gap_warnings(table.t_ns, table.rows, table.path, "frame", FRAME_GAP_FACTOR)
     return table.t_ns, np.flatnonzero(keep)
 

@@ -7,6 +7,7 @@ naming the file and the problem); problems where going on is safe become warning
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -128,27 +129,34 @@ def _trim_to_imu(cap: Capture, source: Path) -> str | None:
     return None
 
 
-def finish_capture(cap: Capture, source: Path, strict: bool = True) -> list[str]:
-    """Run the checks; returns the error messages (raises the first one when `strict`)."""
+def finish_capture(
+    cap: Capture, source: Path, strict: bool = True, needs: Collection[str] = ("camera", "imu")
+) -> list[str]:
+    """Run the checks of the streams in `needs` ("camera", "imu"; the clock overlap when both); returns the error
+    messages (raises the first one when `strict`)."""
+    unknown = set(needs) - {"camera", "imu"}
+    if unknown:
+        raise ValueError(f"unknown stream(s) {sorted(unknown)} in needs (camera, imu)")
+    camera, imu = "camera" in needs, "imu" in needs
     errors: list[tuple[type[Exception], str]] = []
-    if cap.imu is None or len(cap.imu) < 2:
+    if imu and (cap.imu is None or len(cap.imu) < 2):
         errors.append((CaptureError, f"{source}: no IMU stream (the estimator needs gyro and accelerometer)"))
-    else:
+    elif imu and cap.imu is not None:
         errors += [(CaptureError, m) for m in unit_problems(cap.imu, source)]
         for m in unit_warnings(cap.imu, source):
             cap.warn(m)
-    if cap.num_frames == 0 and cap.tracks is None:
+    if camera and cap.num_frames == 0 and cap.tracks is None:
         errors.append((CaptureError, f"{source}: no camera frames"))
-    if cap.num_frames > 0 and cap.imu is not None and len(cap.imu) >= 2:
+    if camera and imu and cap.num_frames > 0 and cap.imu is not None and len(cap.imu) >= 2:
         msg = _trim_to_imu(cap, source)
         if msg:
             errors.append((CaptureError, msg))
-    if cap.num_frames > 0 and cap.camera is None:
+    if camera and cap.num_frames > 0 and cap.camera is None:
         errors.append((CalibrationError, missing_calibration_message(source)))
-    if cap.imu is not None and cap.imu_calib is None:
+    if imu and cap.imu is not None and cap.imu_calib is None:
         cap.imu_calib = PHONE_IMU_DEFAULT
         cap.warn(f"{source}: no IMU noise calibration; assuming phone-grade defaults {PHONE_IMU_DEFAULT}")
-    if cap.num_frames > 0 and cap.camera is not None and cap.tracks is None and not errors:
+    if camera and cap.num_frames > 0 and cap.camera is not None and cap.tracks is None and not errors:
         img = cap.load_image(0)
         h, w = img.shape[:2]
         if (w, h) != (cap.camera.width, cap.camera.height):

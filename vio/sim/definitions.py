@@ -34,10 +34,7 @@ class Definition:
 
 def read_definition(path: Path) -> Definition:
     """Read and validate a scenario YAML; raises SimulationError naming the file and the problem."""
-    try:
-        data = read_yaml(path)
-    except Exception as exc:  # CalibrationError from the shared YAML reader: re-raise as a simulation error
-        raise SimulationError(str(exc)) from None
+    data = read_yaml(path, SimulationError)
     unknown = sorted(set(data) - {"scenario", "duration_s", "motion", "description"})
     if unknown:
         raise SimulationError(f"{path}: unknown key(s) {', '.join(unknown)} (scenario, duration_s, motion)")

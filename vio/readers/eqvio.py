@@ -22,19 +22,12 @@ import numpy as np
 from vio.capture import Capture
 from vio.errors import CaptureError
 from vio.geometry import make_T, quat_wxyz_to_R
-from vio.records import CameraCalib, FeatureTracks, ImuCalib, ImuSeries
+from vio.readers.calib import EUROC_IMU
+from vio.records import CameraCalib, FeatureTracks, ImuSeries
 
 EQVIO_NAME = "eqvio_processed_30s.csv"
 _HEADER = ("row_type", "t_abs", "t_rel", "seq", "frame_idx", "landmark_id")
-# EuRoC's image size and its published ADIS16448 noise parameters (mav0/imu0/sensor.yaml of the same dataset).
-EUROC_WIDTH, EUROC_HEIGHT = 752, 480
-EUROC_IMU = ImuCalib(
-    gyroscope_noise_density=1.6968e-4,
-    accelerometer_noise_density=2.0e-3,
-    gyroscope_random_walk=1.9393e-5,
-    accelerometer_random_walk=3.0e-3,
-    rate_hz=200.0,
-)
+EUROC_WIDTH, EUROC_HEIGHT = 752, 480  # EuRoC's image size, px (its IMU noise is `vio.readers.calib.EUROC_IMU`)
 _META_KEYS = ("camera_fx", "camera_fy", "camera_cx", "camera_cy", "t0_abs") + tuple(
     f"T_ci_{c}" for c in ("tx", "ty", "tz", "qw", "qx", "qy", "qz")
 )
