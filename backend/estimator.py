@@ -36,7 +36,7 @@ from backend.reidentification import Reidentification
 from backend.segments import TrackSegments
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
 from backend.vision_only import VisionOnlyMotion
-from vio.config import BackendConfig
+from vio.config import Config
 from vio.descriptors import Describe
 from vio.records import CameraCalib, EstimatorStats, FeatureTracks, ImuSeries, LandmarkMap, StateEstimate
 
@@ -54,11 +54,11 @@ class VioEstimator:
         camera: CameraCalib,
         imu: ImuSeries,
         preintegrate: Preintegrate,
-        cfg: BackendConfig,
+        cfg: Config,
         positions: list[KnownPosition] | None = None,
     ) -> None:
         self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
-        self.use_imu = cfg.use_imu
+        self.use_imu = cfg.estimator.use_imu
         self.warnings: list[str] = []
         self.state = GraphState(
             Smoother(cfg.smoother),

@@ -12,7 +12,7 @@ import pytest
 from backend.estimator import VioEstimator
 from backend.smoother import Smoother, SolverFailure
 from frontend.preintegration import ImuPreintegrator
-from vio.config import BackendConfig, ImuConfig
+from vio.config import Config, ImuConfig
 from vio.geometry import inv_T
 from vio.records import GRAVITY_WORLD, FeatureTracks, ImuSeries
 
@@ -64,7 +64,7 @@ def ate_se3(gt_p: np.ndarray, est_p: np.ndarray) -> float:
 def run_estimator(data, cfg=None):
     cam, imu, cal, t_kf, tracks, gt = data
     pre = ImuPreintegrator(imu, cal, ImuConfig())
-    est = VioEstimator(cam, imu, pre.between, cfg or BackendConfig())
+    est = VioEstimator(cam, imu, pre.between, cfg or Config())
     for t, tr in zip(t_kf, tracks, strict=True):
         est.add_keyframe(int(t), tr)
     return est

@@ -14,7 +14,6 @@ def test_defaults_and_overrides(tmp_path):
     assert cfg.tracker.max_features == 200
     assert cfg.smoother.kind == "fixed_lag"
     assert cfg.smoother.lag_s == 2.0 and isinstance(cfg.smoother.lag_s, float)
-    assert cfg.backend.smoother is cfg.smoother  # the estimator's bundle holds the same sections
     assert load_config(None, ["imu.integration_sigma=1e-3"]).imu.integration_sigma == 0.001
     assert Config().tracker.max_features == 150
 
@@ -33,6 +32,8 @@ def test_yaml_file_and_override_precedence(tmp_path):
         ["nosection.x=1"],
         ["tracker.max_features=abc"],
         ["tracker.max_features=1.5"],
+        ["estimator.mode=stereo"],
+        ["smoother.kind=ekf"],
         ["bad"],
     ],
 )
@@ -73,7 +74,7 @@ def test_a_key_of_the_former_backend_section_names_its_new_place(old, new):
 def test_presets_apply_in_order_before_file_and_overrides(tmp_path):
     assert "vision_only" in preset_names() and "fixed_lag" in preset_names()
     cfg = load_config(None, [], presets=["vision_only"])
-    assert cfg.estimator.mode == "vision_only" and not cfg.backend.use_imu
+    assert cfg.estimator.mode == "vision_only" and not cfg.estimator.use_imu
     assert cfg.keyframes.min_parallax_px == 12.0
     p = tmp_path / "c.yaml"
     p.write_text("keyframes:\n  min_parallax_px: 15\n")

@@ -34,7 +34,7 @@ def test_outputs_are_complete_and_consistent(eqvio_run):
     assert run["status"] == "ok" and run["format"] == "eqvio" and run["num_frames"] == 240
     assert run["initialisation"] == "static"  # the MAV idles on the ground for the first seconds
     assert run["num_zero_velocity_updates"] > 5
-    assert len(run["keyframe_ms"]["per_keyframe"]) > 0 and run["config"]["backend"]["pixel_sigma"] == 1.0
+    assert len(run["keyframe_ms"]["per_keyframe"]) > 0 and run["config"]["estimator"]["pixel_sigma"] == 1.0
     states = np.loadtxt(out / "states.csv", delimiter=",", skiprows=1)
     assert states.shape == (summary["num_states"], 17) and np.isfinite(states).all()
     assert np.allclose(np.linalg.norm(states[:, 4:8], axis=1), 1.0, atol=1e-6)

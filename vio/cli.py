@@ -44,16 +44,18 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from vio.track import track_capture
 
     cfg = load_config(args.config, args.overrides, args.preset)
-    track_capture(args.capture, args.out, cfg)
+    track_capture(args.capture, args.out, cfg, calib=args.calib)
     return 0
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from vio.atomic import ensure_dir
     from vio.config import load_config
     from vio.pipeline import run_capture
     from vio.readers import open_capture
 
     cfg = load_config(args.config, args.overrides, args.preset)
+    ensure_dir(args.out)  # first: a folder in the way fails before any work
     capture = open_capture(args.capture, calib=args.calib)  # a bad capture fails before a viewer starts
     sinks = []
     if args.rrd or args.serve or args.spawn:
@@ -113,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")
     p.add_argument("capture")
     p.add_argument("--out", required=True, help="tracks CSV")
+    p.add_argument("--calib", help="Kalibr YAML or ASL mav0 folder with the calibration")
     _add_config_args(p)
     p.set_defaults(func=_cmd_track)
 

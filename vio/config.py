@@ -60,6 +60,10 @@ class EstimatorConfig:
     pixel_sigma: float = 1.0  # projection noise, px
     huber_k: float = 1.345  # robust loss threshold, in sigmas
 
+    @property
+    def use_imu(self) -> bool:
+        return self.mode != "vision_only"
+
 
 @dataclass(frozen=True)
 class SmootherConfig:
@@ -135,24 +139,6 @@ class VisionOnlyConfig:
 
 
 @dataclass(frozen=True)
-class BackendConfig:
-    """The estimator's sections; each part of the estimator receives only its own."""
-
-    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    smoother: SmootherConfig = field(default_factory=SmootherConfig)
-    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
-    initialisation: InitialisationConfig = field(default_factory=InitialisationConfig)
-    zero_velocity: ZeroVelocityConfig = field(default_factory=ZeroVelocityConfig)
-    reidentification: ReidentificationConfig = field(default_factory=ReidentificationConfig)
-    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
-    vision_only: VisionOnlyConfig = field(default_factory=VisionOnlyConfig)
-
-    @property
-    def use_imu(self) -> bool:
-        return self.estimator.mode != "vision_only"
-
-
-@dataclass(frozen=True)
 class RunConfig:
     refine: bool = False  # final full batch Levenberg-Marquardt refinement
     max_frames: int = 0  # stop after this many frames (0 = all)
@@ -173,11 +159,6 @@ class Config:
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     vision_only: VisionOnlyConfig = field(default_factory=VisionOnlyConfig)
     run: RunConfig = field(default_factory=RunConfig)
-
-    @property
-    def backend(self) -> BackendConfig:
-        """The estimator's sections, bundled for `VioEstimator`."""
-        return BackendConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(BackendConfig)})
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -215,7 +196,18 @@ def _build_section(section: str, cls: type, values: dict[str, Any]) -> Any:
             f"config section '{section}': unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
         )
     kwargs = {k: _coerce(section, k, hints[k], v) for k, v in values.items()}
+    for key, value in kwargs.items():
+        allowed = _CHOICES.get(f"{section}.{key}")
+        if allowed is not None and value not in allowed:
+            raise ConfigError(f"config {section}.{key}: {value!r} is not one of {', '.join(allowed)}")
     return cls(**kwargs)
+
+
+_CHOICES = {  # keys whose value is one of a few names
+    "estimator.mode": ("visual_inertial", "vision_only"),
+    "smoother.kind": ("isam2", "fixed_lag"),
+    "smoother.factorization": ("CHOLESKY", "QR"),
+}
 
 
 # Keys of the former single `backend` section, now in the section of the estimator part that uses them.

@@ -159,7 +159,7 @@ def run_capture(
         for sink in sinks:
             sink.on_start(cap.camera, cap.imu, cap.ground_truth)
         pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
-        est = VioEstimator(cap.camera, cap.imu, pre.between, cfg.backend, known)
+        est = VioEstimator(cap.camera, cap.imu, pre.between, cfg, known)
         selector = KeyframeSelector(cfg.keyframes)
         n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
         stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)
