@@ -8,9 +8,9 @@ Run alone: `.venv/bin/python -m pytest -q tests/test_architecture.py`.
 from __future__ import annotations
 
 import ast
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.conftest import ROOT
+
 PACKAGES = ("vio", "frontend", "backend")
 MAX_CLASS_LINES = 400
 

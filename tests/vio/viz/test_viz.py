@@ -2,7 +2,7 @@
 
 Records are built from a real capture: real images, features tracked by OpenCV's pyramidal LK on its pixels (ages
 counted here), keyframe states and landmarks from the capture's ground truth. Run this file as a script for the
-sink's logging cost: `.venv/bin/python tests/test_viz.py --bench [CAPTURE]`.
+sink's logging cost: `.venv/bin/python -m tests.vio.viz.test_viz --bench [CAPTURE]`.
 """
 
 from __future__ import annotations
@@ -17,13 +17,10 @@ import cv2
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-from conftest import shared_path  # noqa: E402
-
-from vio.capture import Capture  # noqa: E402
-from vio.readers.asl import read_asl  # noqa: E402
-from vio.records import StateEstimate  # noqa: E402
+from tests.conftest import ROOT, shared_path
+from vio.capture import Capture
+from vio.readers.asl import read_asl
+from vio.records import StateEstimate
 
 RERUN = Path(sys.executable).parent / "rerun"  # installed beside the interpreter running the tests
 KEYFRAME_EVERY = 3  # frames

@@ -5,10 +5,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from conftest import shared_path
 
 from frontend.detection import cell_index, detect_corners
 from frontend.tracker import FeatureTracker
+from tests.conftest import shared_path
 from vio.config import TrackerConfig
 from vio.errors import CalibrationError, CaptureError, ConfigError
 from vio.geometry import skew
@@ -204,7 +204,7 @@ def sampson_px(F: np.ndarray, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
 def middlebury_sampson(cfg: TrackerConfig) -> dict:
     """Track the consecutive templeRing views; Sampson distances (px) of shared tracks to the calibrated geometry.
 
-    Run from the project root: `.venv/bin/python -c "import sys; sys.path.insert(0, 'tests'); import test_tracker
+    Run from the project root: `.venv/bin/python -c "import tests.frontend.test_tracker
     as t; from vio.config import TrackerConfig; print(t.summary(t.middlebury_sampson(TrackerConfig())))"`.
     """
     views, cam = _middlebury_views()
@@ -323,7 +323,7 @@ def orbit_reprojection(capture_root, cfg: TrackerConfig) -> dict:
     """Track a simulated capture; triangulate every track seen >= 3 times from the ground-truth camera poses.
 
     Residuals are distorted-pixel reprojection errors. Run from the project root (after `vio simulate orbit --out
-    CAP --duration 3`): `.venv/bin/python -c "import sys; sys.path.insert(0, 'tests'); import test_tracker as t;
+    CAP --duration 3`): `.venv/bin/python -c "import tests.frontend.test_tracker as t;
     from vio.config import TrackerConfig; print(t.summary(t.orbit_reprojection('CAP', TrackerConfig())))"`.
     """
     from vio.readers.asl import read_asl

@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.conftest import ROOT
 from vio.records import CameraCalib
 from vio.writers.asl import AslWriter
 
-ROOT = Path(__file__).resolve().parents[1]
 STEP_PX = np.array([1.5, 0.75])  # image motion per frame
 N_FRAMES = 8
 T0_NS = 1_700_000_000_000_000_000

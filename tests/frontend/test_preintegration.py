@@ -7,10 +7,10 @@ import logging
 import gtsam
 import numpy as np
 import pytest
-from conftest import shared_path
 from scipy.spatial.transform import Rotation
 
 from frontend.preintegration import ImuPreintegrator, preintegration_params
+from tests.conftest import shared_path
 from vio.config import ImuConfig
 from vio.records import GRAVITY_WORLD, ImuCalib, ImuSeries
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import shared_path
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import shared_path
 from vio.errors import CaptureError
 from vio.readers.tables import NS_PER_S, parse_time_ns
 from vio.trajio import Trajectory, ns_to_seconds_str, read_trajectory, write_tum

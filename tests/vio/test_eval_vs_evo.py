@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, shared_path
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import ROOT, shared_path
 from vio.metrics import evaluate
 from vio.trajio import Trajectory, read_trajectory, write_tum
 

@@ -8,8 +8,8 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, shared_path
 
+from tests.conftest import ROOT, shared_path
 from vio.config import load_config
 from vio.errors import CaptureError, EstimationError
 from vio.pipeline import run_capture

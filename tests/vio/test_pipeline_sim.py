@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.conftest import ROOT
 from vio.config import load_config
 from vio.metrics import evaluate
 from vio.pipeline import run_capture
@@ -72,7 +72,7 @@ def test_re_identified_tracks_are_the_same_surface_points(sim_capture, tmp_path)
     from vio.sim.api import load_scenario
     from vio.sim.render import Renderer
 
-    quick = Path(__file__).resolve().parents[1] / "data" / "synthetic" / "orbit_quick.yaml"
+    quick = ROOT / "data" / "synthetic" / "orbit_quick.yaml"
     capture = sim_capture(str(quick), 10.0)
     result = run_capture(capture, tmp_path, load_config(None, ["run.progress=false"]))
     events = result.stats.reidentifications
