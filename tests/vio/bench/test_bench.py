@@ -58,6 +58,18 @@ def test_named_suites():
         get_suite("nope")
 
 
+def test_suite_methods_name_presets_that_exist():
+    """Built-in methods select configurations by preset name (no `--set` strings in library code)."""
+    from vio.config import load_config
+
+    methods = {m.name: m for m in get_suite("quick").methods}
+    assert load_config(None, list(methods["vision_only"].overrides), methods["vision_only"].presets).estimator.mode == (
+        "vision_only"
+    )
+    assert load_config(None, [], methods["vio_lag3s"].presets).smoother.kind == "fixed_lag"
+    assert all(not m.overrides for m in methods.values())
+
+
 def test_failed_run_is_a_row_not_a_crash(tmp_path):
     """A method on an unreadable capture gives an error row; results.json and results.md are still written."""
     case = Case("orbit", 0, "phone", 2.0)
