@@ -59,7 +59,7 @@ class VioEstimator:
     ) -> None:
         self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
         self.use_imu = cfg.estimator.use_imu
-        self.warnings: list[str] = []
+        self._warnings: list[str] = []
         self.state = GraphState(
             Smoother(cfg.smoother),
             fb.calibration(camera),
@@ -70,7 +70,7 @@ class VioEstimator:
         self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg.landmarks)
         self.admission = LandmarkAdmission(self.book, self.state, cfg.landmarks.prior_sigma_m)
         self.segments = TrackSegments(cfg.landmarks.max_track_keyframes)
-        self.reid = Reidentification(
+        self.reidentification = Reidentification(
             cfg.reidentification,
             cfg.reidentification.enabled and self.use_imu,
             self.book,
@@ -102,17 +102,17 @@ class VioEstimator:
                 camera.fx,
                 cfg.landmarks,
             )
-        self.init_kind = ""  # the start that succeeded: static | moving | visual
-        self.timings_ms: list[float] = []
-        self.num_still = 0  # keyframes with a zero-velocity update
+        self._init_kind = ""  # the start that succeeded: static | moving | visual
+        self._timings_ms: list[float] = []
+        self._num_still = 0  # keyframes with a zero-velocity update
 
     @property
     def initialised(self) -> bool:
-        return bool(self.init_kind)
+        return bool(self._init_kind)
 
     def _warn(self, msg: str) -> None:
         log.warning(msg)
-        self.warnings.append(msg)
+        self._warnings.append(msg)
 
     # ----------------------------------------------------------------- public
     def add_keyframe(self, t_ns: int, tracks: FeatureTracks, describe: Describe | None = None) -> list[StateEstimate]:
@@ -131,9 +131,9 @@ class VioEstimator:
             if getattr(pre, "gap", False):
                 self._warn(f"IMU gap before keyframe {k} (t={t_ns} ns); its inertial factor is weak")
         prev, st.last_k = st.last_k, k
-        ids = self.reid.apply_aliases(self.segments.landmark_ids(tracks.ids))
+        ids = self.reidentification.apply_aliases(self.segments.landmark_ids(tracks.ids))
         if self.initialised and describe is not None:
-            ids = self.reid.reidentify(prev, k, ids, uv, tracks.uv, describe)
+            ids = self.reidentification.reidentify(prev, k, ids, uv, tracks.uv, describe)
         self.book.observe(k, ids, uv)
         if not self.initialised:
             start = self.initialiser.add(k)
@@ -141,8 +141,8 @@ class VioEstimator:
         return [self._step(prev, k, ids)]
 
     def _started(self, start: Start) -> list[StateEstimate]:
-        self.init_kind = start.kind
-        self.timings_ms.append(start.solve_ms)
+        self._init_kind = start.kind
+        self._timings_ms.append(start.solve_ms)
         return [self.state.state(k, start.solve_ms, self.use_imu) for k in start.keyframes]
 
     def finish(self, refine: bool = False) -> dict[str, Any]:
@@ -191,16 +191,16 @@ class VioEstimator:
     def stats(self) -> EstimatorStats:
         """Counts, timings and events of the run so far."""
         return EstimatorStats(
-            initialisation=self.init_kind,
-            keyframe_ms=tuple(self.timings_ms),
-            num_zero_velocity_updates=self.num_still,
+            initialisation=self._init_kind,
+            keyframe_ms=tuple(self._timings_ms),
+            num_zero_velocity_updates=self._num_still,
             num_track_splits=self.segments.num_splits,
-            num_reidentified=self.reid.num_reidentified,
-            num_loop_flushes=self.reid.num_loop_flushes,
+            num_reidentified=self.reidentification.num_reidentified,
+            num_loop_flushes=self.reidentification.num_loop_flushes,
             num_position_factors=self.anchor.num_factors if self.anchor is not None else 0,
             recoveries=tuple(self.recovery.events),
-            reidentifications=tuple(self.reid.events),
-            warnings=tuple(self.warnings),
+            reidentifications=tuple(self.reidentification.events),
+            warnings=tuple(self._warnings),
         )
 
     # ----------------------------------------------------------------- steady state
@@ -221,7 +221,7 @@ class VioEstimator:
                 zv = self.cfg.zero_velocity
                 for f in fb.no_motion_factors(prev, k, zv.sigma_rad, zv.sigma_m, zv.velocity_sigma):
                     st.add(graph, f)
-                self.num_still += 1
+                self._num_still += 1
             stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
         else:
             pred = gtsam.Pose3(self.vision.predict(prev, k, ids))
@@ -233,7 +233,7 @@ class VioEstimator:
             for f in self.anchor.factors(k, st.t_ns[k], st.values):
                 st.add(graph, f)
         self._observe_landmarks(k, ids, pred.matrix(), graph, values, stamps, t_s)
-        self.reid.flush(graph, k)
+        self.reidentification.flush(graph, k)
         try:
             st.smoother.update(graph, values, stamps)
             est = st.smoother.estimate_keys(st.recent_keys(k))
@@ -244,7 +244,7 @@ class VioEstimator:
         if self.use_imu:
             st.bias = st.values.atConstantBias(B(k))
         ms = (time.perf_counter() - t0) * 1e3
-        self.timings_ms.append(ms)
+        self._timings_ms.append(ms)
         return st.state(k, ms, self.use_imu)
 
     def _observe_landmarks(
@@ -266,9 +266,9 @@ class VioEstimator:
             if tr.admitted:
                 if not smoother.has(L(j)):
                     continue
-                gate = self.reid.gate_px(j, self.cfg.landmarks.max_reprojection_px)
+                gate = self.reidentification.gate_px(j, self.cfg.landmarks.max_reprojection_px)
                 if self._consistent(j, world_T_body, tr.views[k], gate):
-                    st.add_projection(self.reid.route(graph, j, k), k, j, tr.views[k])
+                    st.add_projection(self.reidentification.route(graph, j, k), k, j, tr.views[k])
                     stamps[L(j)] = t_s
                 else:
                     self._split_track(j, k)
@@ -279,7 +279,7 @@ class VioEstimator:
             p = self.admission.admit(j, poses, graph, values, k_now=k)
             if p is not None:
                 st.set(L(j), p)
-                self.reid.on_admit(j, p)
+                self.reidentification.on_admit(j, p)
                 stamps[L(j)] = t_s
 
     def _consistent(self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float) -> bool:
@@ -290,7 +290,7 @@ class VioEstimator:
 
     def _split_track(self, j: int, k: int) -> None:
         """Track drift: the view of keyframe k disagrees with landmark j, so it starts a new landmark."""
-        new = self.segments.split(self.reid.unalias(j), j)
+        new = self.segments.split(self.reidentification.unalias(j), j)
         uv = self.book.tracks[j].views.pop(k)
         self.book.observe(k, np.array([new]), uv[None])
 
@@ -314,7 +314,7 @@ class VioEstimator:
         """Rebuild the smoother from the last good state (prev) plus keyframe k's inertial factor or motion prior."""
         st = self.state
         self.recovery.record(prev, k, reason)
-        self.reid.drop_loops()
+        self.reidentification.drop_loops()
         self.book.forget_before(prev)
         st.num_obs = {j: n for j, n in st.num_obs.items() if st.values.exists(L(j))}
         bridge = fb.imu_factor(prev, k, st.pims[k]) if self.use_imu else self.vision.motion_prior(prev, k)

@@ -77,7 +77,7 @@ def data():
 
 def test_moving_start_recovers_metric_trajectory(data):
     est = run_estimator(data)
-    assert est.init_kind == "moving"
+    assert est.stats().initialisation == "moving"
     states = est.states()
     gt = data[5]
     assert len(states) >= len(gt) - 12  # the first window may slide a little
