@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 
@@ -64,7 +65,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if args.serve:  # the viewer's address (and serving until Ctrl-C) must reach the user
             logging.getLogger("vio.viz.rerun_sink").setLevel(logging.INFO)
         sinks.append(make_rerun_sink(rrd=args.rrd, serve=args.serve, spawn=args.spawn, port=args.port))
-    run_capture(capture, args.out, cfg, positions=args.positions, sinks=sinks, refine=args.refine or None)
+    if args.refine:
+        cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, refine=True))
+    run_capture(capture, args.out, cfg, positions=args.positions, sinks=sinks)
     return 0
 
 
@@ -124,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--positions", help="known positions CSV: t_s,x,y,z,sigma_m")
     p.add_argument("--calib", help="Kalibr YAML or ASL mav0 folder with the calibration")
-    p.add_argument("--refine", action="store_true", help="final full batch refinement")
+    p.add_argument("--refine", action="store_true", help="final full batch refinement (same as --set run.refine=true)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--rrd", help="save a rerun recording")
     g.add_argument("--serve", action="store_true", help="serve the rerun web viewer on 127.0.0.1")

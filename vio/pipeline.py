@@ -137,7 +137,6 @@ def run_capture(
     cfg: Config,
     positions: str | None = None,
     sinks: Sequence[EstimateSink] = (),
-    refine: bool | None = None,
     calib: str | None = None,
 ) -> RunResult:
     """Estimate the whole capture; writes the four output files into `out` (see vio.outputs) and returns them.
@@ -152,10 +151,10 @@ def run_capture(
             raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
         known = None
         if positions is not None:
-            from vio.positions import read_positions
+            from vio.readers.positions import read_positions
 
             known = read_positions(positions)
-        refine = cfg.run.refine if refine is None else bool(refine)
+        refine = cfg.run.refine  # the batch refinement is decided by the config only
         for sink in sinks:
             sink.on_start(cap.camera, cap.imu, cap.ground_truth)
         pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)

@@ -13,8 +13,8 @@ from tests.conftest import ROOT, shared_path
 from vio.config import load_config
 from vio.errors import CaptureError, EstimationError
 from vio.pipeline import run_capture
-from vio.positions import read_positions
 from vio.readers.eqvio import default_eqvio_path, read_eqvio
+from vio.readers.positions import read_positions
 from vio.trajio import read_trajectory
 
 GT_PARTS = ("euroc_v1_01", "mav0", "state_groundtruth_estimate0", "data.csv")
@@ -106,7 +106,7 @@ def test_whole_euroc_file_meets_the_targets_online_and_in_batch(tmp_path):
     from vio.metrics import evaluate
 
     gt = read_trajectory(shared_path(*GT_PARTS))
-    summary = run_capture(read_eqvio(), tmp_path, load_config(None, EQVIO_SET), refine=True).summary
+    summary = run_capture(read_eqvio(), tmp_path, load_config(None, [*EQVIO_SET, "run.refine=true"])).summary
     assert summary["refine"]["refined"] is True
     online = evaluate(gt, read_trajectory(tmp_path / "trajectory_online.tum"), align="se3")
     batch = evaluate(gt, read_trajectory(tmp_path / "trajectory.tum"), align="se3")

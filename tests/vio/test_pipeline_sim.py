@@ -18,7 +18,7 @@ from vio.trajio import read_trajectory
 def orbit_run(sim_capture, tmp_path_factory):
     capture = sim_capture("orbit", 6.0)
     out = tmp_path_factory.mktemp("orbit_run")
-    summary = run_capture(capture, out, load_config(None, ["run.progress=false"]), refine=True).summary
+    summary = run_capture(capture, out, load_config(None, ["run.progress=false", "run.refine=true"])).summary
     return capture, out, summary
 
 

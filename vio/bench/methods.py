@@ -63,19 +63,20 @@ def _latencies(run: dict) -> np.ndarray | None:
     return np.asarray(per, float) if isinstance(per, list) and per else None
 
 
-def _pipeline(capture_dir: Path, out: Path, method: Method, refine: bool) -> tuple[dict, float]:
+def _pipeline(capture_dir: Path, out: Path, method: Method) -> tuple[dict, float]:
     """One `run_capture` into `out` with the progress bar off; returns (run.json, wall time s).
 
-    With `refine`, the pipeline writes the online estimate (the smoother's estimate of every keyframe just before
-    the batch refinement replaces it) to `out/trajectory_online.tum` beside the refined `trajectory.tum`.
+    With `method.refine`, the pipeline writes the online estimate (the smoother's estimate of every keyframe just
+    before the batch refinement replaces it) to `out/trajectory_online.tum` beside the refined `trajectory.tum`.
     """
     from vio.config import load_config
     from vio.pipeline import run_capture
 
     cfg = load_config(None, ["run.progress=false", *method.overrides], method.presets)
+    cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, refine=method.refine))
     (out / "trajectory_online.tum").unlink(missing_ok=True)
     t0 = time.perf_counter()
-    run_capture(capture_dir, out, cfg, refine=refine)
+    run_capture(capture_dir, out, cfg)
     wall = time.perf_counter() - t0
     run = json.loads((out / "run.json").read_text(encoding="utf-8"))
     if run.get("status") != "ok":
@@ -93,28 +94,18 @@ def run_vio(capture_dir: Path, out: Path, method: Method) -> list[MethodOutput]:
 
     The online estimate is the smoother's final estimate of every keyframe (trajectory.tum of a run without
     `--refine`); its wall time excludes any refinement. The batch optimum is Levenberg-Marquardt over the same
-    factor graph after the online pass. When the pipeline writes the online trajectory of a refined run apart
-    (`trajectory_online.tum`), one run gives both; otherwise the online and the refined run are separate runs (same
-    deterministic frontend and graph) in `out/online` and `out`.
+    factor graph after the online pass; one run gives both (the pipeline saves the online trajectory of a refined
+    run as `trajectory_online.tum`).
     """
-    rows: list[MethodOutput] = []
     name = method.name
+    run, wall = _pipeline(capture_dir, out, method)
     if not method.refine:
-        run, wall = _pipeline(capture_dir, out, method, refine=False)
         return [MethodOutput(name, out / "trajectory.tum", wall, _latencies(run), "se3", _info(run))]
-    run, wall = _pipeline(capture_dir, out, method, refine=True)
     refine_s = float((run.get("refine") or {}).get("refine_s", 0.0))
-    if not (run.get("refine") or {}).get("refined", False):
+    if not (run.get("refine") or {}).get("refined", False) or not (out / "trajectory_online.tum").exists():
         raise EstimationError(f"{out}: the batch refinement did not run or failed; see run.json warnings")
-    if (out / "trajectory_online.tum").exists():
-        online = MethodOutput(name, out / "trajectory_online.tum", wall - refine_s, _latencies(run), "se3", _info(run))
-    else:
-        run_on, wall_on = _pipeline(capture_dir, out / "online", method, refine=False)
-        online = MethodOutput(
-            name, out / "online" / "trajectory.tum", wall_on, _latencies(run_on), "se3", _info(run_on)
-        )
-    rows += [online, MethodOutput("batch", out / "trajectory.tum", wall, None, "se3", _info(run))]
-    return rows
+    online = MethodOutput(name, out / "trajectory_online.tum", wall - refine_s, _latencies(run), "se3", _info(run))
+    return [online, MethodOutput("batch", out / "trajectory.tum", wall, None, "se3", _info(run))]
 
 
 def run_vision_only(capture_dir: Path, out: Path, method: Method) -> list[MethodOutput]:
