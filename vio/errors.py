@@ -40,3 +40,7 @@ class SimulationError(VioError):
 
 class OutputError(VioError):
     """An output folder or file cannot be created or written (a file in the way, no permission, disk full)."""
+
+
+class PartError(SimulationError):
+    """A part model is invalid: a user's STL is missing, not an STL, empty, not watertight, or in unknown units."""
