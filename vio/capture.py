@@ -19,6 +19,19 @@ from vio.records import CameraCalib, FeatureTracks, Frame, GroundTruth, ImuCalib
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class Stills:
+    """Full-resolution photos taken during the capture by the video's camera (ASL `mav0/cam1` with an image larger
+    than cam0's), on the IMU clock. The estimator ignores them; the part model uses them."""
+
+    camera: CameraCalib  # the stills' own intrinsics, distortion and body_T_cam
+    t_ns: np.ndarray  # (S,) int64 still times, ns
+    load_image: Callable[[int], np.ndarray]  # still index -> (H, W) uint8 grayscale
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+
 @dataclass
 class Capture:
     """A recording: calibration, IMU stream, frame times with an image loader, optional ground truth.
@@ -38,6 +51,7 @@ class Capture:
     warnings: list[str] = field(default_factory=list)  # one line each: problems where going on is safe
     format: str = "asl"  # one of `vio.readers.FORMATS`
     tracks: list[FeatureTracks] | None = None  # precomputed feature tracks (e.g. gtsam's eqvio file); no images
+    stills: Stills | None = None  # full-resolution stills, when the capture has a stills stream
 
     @property
     def num_frames(self) -> int:

@@ -36,8 +36,22 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         imu_grade=args.imu,
         overwrite=args.force,
         images=not args.no_images,
+        part=args.object,
+        part_units=args.object_units,
+        surface=args.surface,
+        stills_hz=args.stills,
+        stills_size=args.stills_size,
     )
     return 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    """`WxH` -> (W, H) for argparse."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 2016x1512, got {text!r}") from None
+    return w, h
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
@@ -113,6 +127,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--imu", choices=["phone", "tactical", "ideal"], default="phone")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.add_argument("--no-images", action="store_true", help="skip rendering (IMU and ground truth only)")
+    p.add_argument(
+        "--object", default="cube", metavar="NAME|FILE.stl", help="the part: cube, cube_features, freeform, or an STL"
+    )
+    p.add_argument("--object-units", choices=["mm", "m"], default="mm", help="units of an --object STL file")
+    p.add_argument("--surface", choices=["speckle", "plain"], default="speckle", help="the part's paint")
+    p.add_argument("--stills", type=float, default=0.0, metavar="HZ", help="full-resolution stills rate (0: off)")
+    p.add_argument("--stills-size", type=_size, default=(2016, 1512), metavar="WxH", help="stills size, px")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")

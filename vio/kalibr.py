@@ -13,6 +13,7 @@ gyroscope_random_walk rad/s^2/sqrt(Hz), accelerometer_random_walk m/s^3/sqrt(Hz)
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from typing import Any
@@ -149,7 +150,7 @@ def camera_yaml_text(cam: CameraCalib, comment: str = "vio camera") -> str:
     return (
         "%YAML:1.0\n"
         "sensor_type: camera\n"
-        f"comment: {comment}\n"
+        f"comment: {json.dumps(comment)}\n"  # quoted: a comment may hold a colon
         "T_BS:\n" + _fmt_matrix(cam.body_T_cam) + f"rate_hz: {cam.rate_hz:g}\n"
         f"resolution: [{cam.width}, {cam.height}]\n"
         "camera_model: pinhole\n"
@@ -164,7 +165,7 @@ def imu_yaml_text(imu: ImuCalib, comment: str = "vio imu") -> str:
     return (
         "%YAML:1.0\n"
         "sensor_type: imu\n"
-        f"comment: {comment}\n"
+        f"comment: {json.dumps(comment)}\n"
         "T_BS:\n" + _fmt_matrix(np.eye(4)) + f"rate_hz: {imu.rate_hz:g}\n"
         f"gyroscope_noise_density: {imu.gyroscope_noise_density:.6e}  # rad/s/sqrt(Hz)\n"
         f"gyroscope_random_walk: {imu.gyroscope_random_walk:.6e}  # rad/s^2/sqrt(Hz)\n"

@@ -14,19 +14,20 @@ support: a TUM-VI capture needs a pinhole-radtan calibration through `--calib`.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from vio.capture import Capture
+from vio.capture import Capture, Stills
 from vio.errors import CalibrationError, CaptureError
 from vio.kalibr import read_camera_yaml, read_imu_yaml
 from vio.readers.calib import find_calibration, load_calibration
 from vio.readers.common import FRAME_GAP_FACTOR, imu_from_table
 from vio.readers.tables import Table, increasing_mask, read_strict_table, read_table, strict_rows
 from vio.readers.validate import gap_warnings
-from vio.records import GroundTruth, ImuSeries
+from vio.records import CameraCalib, GroundTruth, ImuSeries
 
 GT_LAYOUT = "t_ns, p, q_wxyz, v, b_w, b_a"
 
@@ -79,7 +80,7 @@ def find_mav0(root: Path) -> Path:
 
 
 def _frames(cam_csv: Path, warnings: list[str]) -> tuple[np.ndarray, list[Path]]:
-    """Frame times (ns) and image paths of `cam0/data.csv`: repeated times and missing images are skipped."""
+    """Frame times (ns) and image paths of `camN/data.csv`: repeated times and missing images are skipped."""
     table, names = _read_frame_list(cam_csv)
     keep = increasing_mask(table, "frame", warnings)
     data_dir = cam_csv.parent / "data"
@@ -113,7 +114,15 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
     gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt = read_groundtruth_csv(gt_csv) if gt_csv.exists() else None
     scene = root / "scene" if (root / "scene").is_dir() else None
+    fmt = "tumvi" if (mav0 / "mocap0").is_dir() or (root / "dso").is_dir() else "asl"
+    cap = Capture(root, camera, imu_calib, imu, frame_t, _loader(paths), gt, scene, [], fmt)
+    cap.stills = _stills(mav0, camera, warnings)
+    for w in warnings:
+        cap.warn(w)
+    return cap
 
+
+def _loader(paths: list[Path]) -> Callable[[int], np.ndarray]:
     def load(i: int) -> np.ndarray:
         p = paths[i]
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
@@ -121,11 +130,20 @@ def read_asl(root: str | os.PathLike[str]) -> Capture:
             raise CaptureError("image missing or cannot be decoded", p)
         return img
 
-    fmt = "tumvi" if (mav0 / "mocap0").is_dir() or (root / "dso").is_dir() else "asl"
-    cap = Capture(root, camera, imu_calib, imu, frame_t, load, gt, scene, [], fmt)
-    for w in warnings:
-        cap.warn(w)
-    return cap
+    return load
+
+
+def _stills(mav0: Path, video: CameraCalib | None, warnings: list[str]) -> Stills | None:
+    """`cam1` as a stills stream: a calibrated camera whose images are larger than cam0's (EuRoC's and TUM-VI's
+    cam1, the right camera of a stereo pair of the same size, is not stills)."""
+    yaml_path, csv_path = mav0 / "cam1" / "sensor.yaml", mav0 / "cam1" / "data.csv"
+    if video is None or not yaml_path.exists() or not csv_path.exists():
+        return None
+    cam = read_camera_yaml(yaml_path)
+    if cam.width * cam.height <= video.width * video.height:
+        return None
+    t_ns, paths = _frames(csv_path, warnings)
+    return Stills(cam, t_ns, _loader(paths))
 
 
 def open_asl(root: Path, calib: str | Path | None = None) -> Capture:

@@ -1,7 +1,8 @@
 """The simulator's public functions: `load_scenario` (the oracle other tests use) and `simulate` (writes a capture).
 
-Seeds are split by stream with `np.random.SeedSequence(seed).spawn(4)`: trajectory (motion phases), IMU (noise
-and biases), image noise, scene (textures). The same seed gives byte-identical files.
+Seeds are split by stream with `np.random.SeedSequence(seed).spawn(5)`: trajectory (motion phases), IMU (noise
+and biases), image noise, scene (textures), stills noise (the first four are those of the earlier `spawn(4)`, so
+adding the stills stream changed no other stream). The same seed gives byte-identical files.
 """
 
 from __future__ import annotations
@@ -16,8 +17,9 @@ from vio.errors import SimulationError
 from vio.sim import rig, scenarios
 from vio.sim.definitions import read_definition
 from vio.sim.imu import grade_by_name, imu_calib, simulate_imu
+from vio.sim.parts import build_part
 from vio.sim.scenario import Scenario
-from vio.sim.scene import Scene
+from vio.sim.scene import SURFACES
 from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
 from vio.sim.writer import write_capture
 from vio.writers.asl import AslWriter
@@ -31,15 +33,31 @@ DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0}
 def _streams(seed: int) -> list[np.random.SeedSequence]:
     if seed < 0:
         raise SimulationError(f"seed must be non-negative, got {seed}")
-    return np.random.SeedSequence(seed).spawn(4)
+    return np.random.SeedSequence(seed).spawn(5)
 
 
 def load_scenario(
-    scenario: str | os.PathLike[str], seed: int = 0, duration_s: float | None = None, imu_grade_name: str = "phone"
+    scenario: str | os.PathLike[str],
+    seed: int = 0,
+    duration_s: float | None = None,
+    imu_grade_name: str = "phone",
+    part: str = "cube",
+    part_units: str = "mm",
+    surface: str = "speckle",
+    stills_hz: float = 0.0,
+    stills_size: tuple[int, int] = rig.STILLS_SIZE,
 ) -> Scenario:
     """Build a scenario by name (`orbit`, `figure8`, `room`), from a scenario YAML (`data/synthetic/*.yaml`), or
-    from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses."""
-    ss_traj, _, _, ss_scene = _streams(seed)
+    from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses.
+
+    `part` is the measured object (`vio.sim.parts`: cube, cube_features, freeform, or an STL file in `part_units`),
+    painted with `surface` (speckle | plain). `stills_hz` > 0 adds full-resolution stills of `stills_size`
+    (width, height) px taken by the same camera (`mav0/cam1`)."""
+    if surface not in SURFACES:
+        raise SimulationError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
+    the_part = build_part(part, part_units)
+    stills = _stills_camera(stills_hz, stills_size)
+    ss_traj, _, _, ss_scene, _ = _streams(seed)
     rng = np.random.default_rng(ss_traj)
     texture_seed = int(ss_scene.generate_state(1)[0])
     camera = rig.default_camera()
@@ -53,10 +71,10 @@ def load_scenario(
         base = name if definition is None else definition.base
         motion = {} if definition is None else definition.motion
         if base == "room":
-            scene = scenarios.room_scene(texture_seed)
+            scene = scenarios.room_scene(texture_seed, the_part, surface)
             cam_fn = scenarios.room_camera(rng, **motion)
         else:
-            scene = scenarios.tabletop_scene(texture_seed)
+            scene = scenarios.tabletop_scene(texture_seed, the_part, surface)
             centre = scene.object_corners_world().mean(axis=0)
             make = scenarios.orbit_camera if base == "orbit" else scenarios.figure8_camera
             cam_fn = make(rng, centre, **motion)
@@ -71,7 +89,8 @@ def load_scenario(
                 f"unknown scenario '{name}': choose orbit, figure8, room, a scenario YAML, "
                 "or a trajectory file (EuRoC CSV or TUM)"
             )
-        traj0, t_first_ns, scene = _from_file(path, texture_seed)
+        traj0, t_first_ns, p_world = _from_file(path)
+        scene = scenarios.trajectory_room_scene(p_world, texture_seed, the_part, surface)
         span = traj0.duration_s
         default_s = span
         traj_fn = traj0.pose
@@ -95,10 +114,30 @@ def load_scenario(
         duration_s=dur,
         camera_rate_hz=rig.CAMERA_RATE_HZ,
         imu_rate_hz=rig.IMU_RATE_HZ,
+        stills_camera=stills,
+        stills_offset_ns=rig.STILLS_OFFSET_NS,
     )
 
 
-def _from_file(path: Path, texture_seed: int) -> tuple[Trajectory, int, Scene]:
+MAX_STILLS_SIZE = (4032, 3024)
+
+
+def _stills_camera(hz: float, size: tuple[int, int]):
+    """The stills camera, or None when stills are off (hz 0); a one-line error for a bad rate or size."""
+    if hz == 0:
+        return None
+    if not np.isfinite(hz) or not 0 < hz <= 10:
+        raise SimulationError(f"stills rate must be between 0 and 10 Hz, got {hz:g}")
+    w, h = (int(v) for v in size)
+    if not (64 <= w <= MAX_STILLS_SIZE[0] and 48 <= h <= MAX_STILLS_SIZE[1]) or h > w:
+        raise SimulationError(
+            f"stills size must be landscape, at most {MAX_STILLS_SIZE[0]}x{MAX_STILLS_SIZE[1]}, got {w}x{h}"
+        )
+    return rig.stills_camera(w, h, float(hz))
+
+
+def _from_file(path: Path) -> tuple[Trajectory, int, np.ndarray]:
+    """The spline through a trajectory file's poses, its first time (ns) and its positions (N, 3) m."""
     from vio.trajio import read_trajectory
 
     traj = read_trajectory(path)
@@ -112,7 +151,7 @@ def _from_file(path: Path, texture_seed: int) -> tuple[Trajectory, int, Scene]:
         i = int(np.argmax(gaps))
         raise SimulationError(f"{path}: {gaps[i]:.2f} s gap between poses {i} and {i + 1}; the spline needs < 1 s")
     spline, t_first_ns = spline_trajectory(traj.t_ns, traj.p_world, traj.q_wxyz)
-    return spline, t_first_ns, scenarios.trajectory_room_scene(traj.p_world, texture_seed)
+    return spline, t_first_ns, traj.p_world
 
 
 def simulate(
@@ -124,14 +163,19 @@ def simulate(
     overwrite: bool = False,
     images: bool = True,
     workers: int | None = None,
+    part: str = "cube",
+    part_units: str = "mm",
+    surface: str = "speckle",
+    stills_hz: float = 0.0,
+    stills_size: tuple[int, int] = rig.STILLS_SIZE,
 ) -> Path:
     """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
 
     `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
     `workers` render processes (default: 2, or 1 for short captures).
     """
-    sc = load_scenario(scenario, seed=seed, duration_s=duration_s, imu_grade_name=imu_grade)
-    _, ss_imu, ss_img, _ = _streams(seed)
+    sc = load_scenario(scenario, seed, duration_s, imu_grade, part, part_units, surface, stills_hz, stills_size)
+    _, ss_imu, ss_img, _, ss_stills = _streams(seed)
     imu, gt = simulate_imu(
         sc.trajectory,
         sc.t0_ns,
@@ -141,6 +185,6 @@ def simulate(
         np.random.default_rng(ss_imu),
     )
     with AslWriter(out, overwrite=overwrite) as writer:
-        write_capture(writer, sc, imu, gt, images=images, image_seed=ss_img, workers=workers)
+        write_capture(writer, sc, imu, gt, images, (ss_img, ss_stills), workers)
     log.info("simulated %s (%.1f s, seed %d, %s IMU) into %s", sc.name, sc.duration_s, seed, sc.imu_grade, out)
     return Path(out)

@@ -1,11 +1,13 @@
-"""Ray-cast renderer: distorted pinhole camera, textured axis-aligned boxes, mip-mapped trilinear texture lookup.
+"""Ray-cast renderer: distorted pinhole camera, textured axis-aligned boxes, and the part as a triangle mesh.
 
 One undistorted ray per distorted pixel centre (pixel (u, v) is at coordinate (u, v), OpenCV's convention) is
 computed once; per frame the rays are rotated into the world, intersected analytically with the room (exit face)
-and the solid boxes (entry face, only inside the projected bounding box when it is in front), and the nearest hit
-samples its face texture at the mip level matching the pixel footprint. Pixels on a surface boundary are
-re-rendered with 8 sub-samples in an N-rooks pattern (anti-aliased edges keep sub-pixel accuracy at silhouettes).
-Seeded Gaussian pixel noise (1.5 DN) is added per frame.
+and the solid boxes (entry face, only inside the projected bounding box when it is in front), and, inside the
+part's projected bounding box, with the part's mesh through Embree (vio.sim.part_render). A box hit samples its
+face texture at the mip level matching the pixel footprint; a part hit is shaded (speckle albedo, Lambertian light,
+cast shadows). Pixels on a surface boundary or a crease of the part are re-rendered with 8 sub-samples in an
+N-rooks pattern (anti-aliased edges keep sub-pixel accuracy at silhouettes). Seeded Gaussian pixel noise (1.5 DN)
+is added per frame.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import cv2
 import numpy as np
 
 from vio.records import CameraCalib
+from vio.sim.part_render import PartSurface
 from vio.sim.scene import Scene
 from vio.sim.textures import build_atlas, scene_textures
 
@@ -29,6 +32,8 @@ _ROOKS = np.array([0, 4, 7, 5, 2, 6, 1, 3])
 _SUB_DX = ((np.arange(8) + 0.5) / 8.0 - 0.5).astype(np.float32)
 _SUB_DY = ((_ROOKS + 0.5) / 8.0 - 0.5).astype(np.float32)
 _TINY = np.float32(1e-12)
+_REMAP_MAX, _REMAP_COLS = 32767, 4096  # cv2.remap's largest map side; the row length of flattened lookups
+_CREASE_COS = np.float32(np.cos(np.radians(20.0)))  # neighbouring part pixels whose normals differ more: an edge
 
 
 def _rays(cam: CameraCalib, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -80,6 +85,9 @@ class Renderer:
         self.focal = np.float32(np.sqrt(camera.fx * camera.fy))
         self._lo = [b.lo.astype(np.float32) for b in scene.boxes]
         self._hi = [b.hi.astype(np.float32) for b in scene.boxes]
+        self.part_sid = 6 * len(scene.boxes)  # surface id of every part hit (boxes use 6 * box + face)
+        speckle_seed = np.random.SeedSequence([scene.texture_seed, 1])
+        self.part = PartSurface(scene.part, speckle_seed) if scene.part is not None else None
 
     # -- geometry ---------------------------------------------------------------------------------------------
     def _room_exit(self, o: np.ndarray, d: list[np.ndarray], inv: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -113,10 +121,11 @@ class Renderer:
             t[hit] = tk[hit]
             sid[hit] = 6 * bi + face
 
-    def _window(self, bi: int, cam_R_world: np.ndarray, o: np.ndarray) -> tuple[slice, slice] | None:
-        """Pixel window holding the projection of box bi (None: not visible); the whole image if it straddles."""
+    def _window(self, corners: np.ndarray, cam_R_world: np.ndarray, o: np.ndarray) -> tuple[slice, slice] | None:
+        """Pixel window holding the projection of a box with these (8, 3) world corners (None: not visible); the
+        whole image if it straddles the camera plane."""
         cam = self.camera
-        p_cam = (self.scene.boxes[bi].corners() - o) @ cam_R_world.T
+        p_cam = (corners - o) @ cam_R_world.T
         if np.any(p_cam[:, 2] < 0.02):
             return slice(0, cam.height), slice(0, cam.width)
         uv = cam.project(p_cam)
@@ -127,8 +136,11 @@ class Renderer:
             return None
         return slice(v0, v1), slice(u0, u1)
 
-    def trace(self, o: np.ndarray, d: list[np.ndarray], windows: list | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest hit t (in ray units) and surface id (6 * box + face) of world rays (dx, dy, dz) from o."""
+    def trace(
+        self, o: np.ndarray, d: list[np.ndarray], windows: list | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nearest hit t (in ray units), surface id (6 * box + face, or `part_sid`) and part triangle (-1: a box) of
+        world rays (dx, dy, dz) from o. `windows[i]` limits box i (the last entry: the part) to a pixel window."""
         inv = [np.float32(1.0) / c for c in d]
         t, sid = self._room_exit(o, d, inv)
         for bi in range(1, len(self.scene.boxes)):
@@ -137,7 +149,17 @@ class Renderer:
                 continue
             tw, sw = t[win], sid[win]  # views
             self._box_entry(bi, o, [c[win] for c in d], [c[win] for c in inv], tw, sw)
-        return t, sid
+        prim = np.full(t.shape, -1, np.int32)
+        win = ... if windows is None else windows[-1]
+        if self.part is not None and win is not None:
+            dw = np.stack([c[win] for c in d], axis=-1)
+            tp, pw = self.part.intersect(o, dw.reshape(-1, 3), t[win].reshape(-1))
+            tp, pw = tp.reshape(dw.shape[:-1]), pw.reshape(dw.shape[:-1])
+            hit = pw >= 0
+            t[win] = np.where(hit, tp, t[win])
+            sid[win] = np.where(hit, self.part_sid, sid[win])
+            prim[win] = pw
+        return t, sid, prim
 
     # -- shading ----------------------------------------------------------------------------------------------
     def _tables(self) -> None:
@@ -165,11 +187,28 @@ class Renderer:
             [self.atlas.size_max.reshape(-1, 2), self.atlas.origin.reshape(-1, 2), 0.5**lv]
         ).astype(np.float32)
 
-    def shade(self, o: np.ndarray, d: list[np.ndarray], t: np.ndarray, sid: np.ndarray, norm15: np.ndarray):
-        """Radiance in [0, 1] of the hits (t, sid) of world rays (dx, dy, dz) from o (arrays of one shape).
+    def shade(
+        self, o: np.ndarray, d: list[np.ndarray], t: np.ndarray, sid: np.ndarray, prim: np.ndarray, norm15: np.ndarray
+    ) -> np.ndarray:
+        """Radiance in [0, 1] of the hits (t, sid, prim) of world rays (dx, dy, dz) from o (arrays of one shape).
 
         norm15 is |ray|^1.5 per ray (the ray lengths do not change under rotation).
         """
+        on_part = prim >= 0
+        if not on_part.any():
+            return self._shade_boxes(o, d, t, sid, norm15)
+        out = np.empty(t.shape, np.float32)
+        box = ~on_part
+        out[box] = self._shade_boxes(o, [c[box] for c in d], t[box], sid[box], norm15[box])
+        dp = np.stack([c[on_part] for c in d], axis=-1).astype(np.float64)
+        tp = t[on_part].astype(np.float64)
+        p = o.astype(np.float64) + tp[:, None] * dp
+        footprint = tp * np.linalg.norm(dp, axis=1) / float(self.focal)  # m per pixel at the hit
+        out[on_part] = self.part.radiance(p, prim[on_part], footprint)
+        return out
+
+    def _shade_boxes(self, o: np.ndarray, d: list[np.ndarray], t: np.ndarray, sid: np.ndarray, norm15: np.ndarray):
+        """Radiance in [0, 1] of box hits: the face texture at the mip level of the pixel footprint."""
         sid = sid.astype(np.int32)
         surf = self._surf.take(sid, axis=0)
         ax = surf[..., 0]
@@ -198,11 +237,13 @@ class Renderer:
         scale = row[..., 4]
         x = np.minimum(np.maximum(tu * scale, np.float32(0.0)), row[..., 0]) + row[..., 2]
         y = np.minimum(np.maximum(tv * scale, np.float32(0.0)), row[..., 1]) + row[..., 3]
-        shape = x.shape
-        if x.ndim == 1:
-            x, y = x[None, :], y[None, :]
+        shape, n = x.shape, x.size
+        if x.ndim == 1 or max(shape) >= _REMAP_MAX:  # remap wants a 2D map with sides below SHRT_MAX
+            rows = -(-n // _REMAP_COLS)
+            x = np.pad(x.ravel(), (0, rows * _REMAP_COLS - n)).reshape(rows, _REMAP_COLS)
+            y = np.pad(y.ravel(), (0, rows * _REMAP_COLS - n)).reshape(rows, _REMAP_COLS)
         out = cv2.remap(self.atlas.image, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return out.reshape(shape)
+        return out.ravel()[:n].reshape(shape)
 
     def _sub_rays(self, vv: np.ndarray, uu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(E, S) camera rays x, y of the sub-samples of pixels (uu, vv), bilinear in the per-pixel ray grid.
@@ -227,7 +268,7 @@ class Renderer:
         d = [world_T_cam[k, 0] * xy[:, 0] + world_T_cam[k, 1] * xy[:, 1] + world_T_cam[k, 2] for k in range(3)]
         d = [np.where(c == 0, 1e-12, c) for c in d]
         o = world_T_cam[:3, 3]
-        t, sid = self.trace(o, d)
+        t, sid, _ = self.trace(o, d)
         return o + t[:, None] * np.column_stack(d), sid
 
     # -- frames -----------------------------------------------------------------------------------------------
@@ -236,13 +277,21 @@ class Renderer:
         world_R_cam = world_T_cam[:3, :3].astype(np.float32)
         o = world_T_cam[:3, 3].astype(np.float32)
         d = _rotate(world_R_cam, self.rays[0], self.rays[1])
-        cam_R_world = world_T_cam[:3, :3].T
-        windows = [None] + [self._window(bi, cam_R_world, world_T_cam[:3, 3]) for bi in range(1, len(self._lo))]
-        t, sid = self.trace(o, d, windows)
-        img = self.shade(o, d, t, sid, self._norm15)
+        cam_R_world, c = world_T_cam[:3, :3].T, world_T_cam[:3, 3]
+        corners = [b.corners() for b in self.scene.boxes[1:]]
+        corners += [self.part.corners_world] if self.part is not None else []
+        windows = [None] + [self._window(k, cam_R_world, c) for k in corners]
+        t, sid, prim = self.trace(o, d, windows)
+        img = self.shade(o, d, t, sid, prim, self._norm15)
         edge = np.zeros(sid.shape, bool)
         dh = sid[:, 1:] != sid[:, :-1]
         dv = sid[1:, :] != sid[:-1, :]
+        if self.part is not None and (prim >= 0).any():  # creases of the part: normals that turn sharply
+            n = self.part.normals[np.maximum(prim, 0)]
+            dh |= (
+                (prim[:, 1:] >= 0) & (prim[:, :-1] >= 0) & (np.einsum("ijk,ijk->ij", n[:, 1:], n[:, :-1]) < _CREASE_COS)
+            )
+            dv |= (prim[1:, :] >= 0) & (prim[:-1, :] >= 0) & (np.einsum("ijk,ijk->ij", n[1:], n[:-1]) < _CREASE_COS)
         edge[:, 1:] |= dh
         edge[:, :-1] |= dh
         edge[1:, :] |= dv
@@ -251,19 +300,19 @@ class Renderer:
         if vv.size:  # anti-aliasing: N-rooks sub-samples on surface boundaries
             rx, ry = self._sub_rays(vv, uu)
             ds = _rotate(world_R_cam, rx, ry)
-            ts, sids = self.trace(o, ds)
+            ts, sids, prims = self.trace(o, ds)
             norm15 = (1.0 + rx * rx + ry * ry) ** np.float32(0.75)
-            img[vv, uu] = self.shade(o, ds, ts, sids, norm15).mean(axis=1)
+            img[vv, uu] = self.shade(o, ds, ts, sids, prims, norm15).mean(axis=1)
         val = img * np.float32(255.0)
         if rng is not None:
             val += rng.standard_normal(val.shape, dtype=np.float32) * np.float32(NOISE_DN)
         return np.clip(np.rint(val), 0, 255).astype(np.uint8)
 
 
-def camera_poses(sc: Scenario, t_ns: np.ndarray) -> np.ndarray:
-    """(F, 4, 4) world_T_cam of scenario `sc` at frame times t_ns."""
+def camera_poses(sc: Scenario, t_ns: np.ndarray, camera: CameraCalib | None = None) -> np.ndarray:
+    """(F, 4, 4) world_T_cam of scenario `sc`'s camera (or `camera`, e.g. the stills) at times t_ns."""
     p, R = sc.trajectory.pose((t_ns - sc.t0_ns).astype(np.float64) * 1e-9)
     world_T_body = np.tile(np.eye(4), (len(t_ns), 1, 1))
     world_T_body[:, :3, :3] = R
     world_T_body[:, :3, 3] = p
-    return world_T_body @ sc.camera.body_T_cam
+    return world_T_body @ (sc.camera if camera is None else camera).body_T_cam

@@ -42,3 +42,26 @@ def default_camera(rate_hz: float = CAMERA_RATE_HZ) -> CameraCalib:
         body_T_cam=body_T_cam(),
         rate_hz=rate_hz,
     )
+
+
+STILLS_SIZE = (2016, 1512)  # default full-resolution still, px (a 12 MP phone sensor binned 2x2)
+STILLS_OFFSET_NS = 13_000_000  # the first still 13 ms after t0: stills are not synchronised with the video
+
+
+def stills_camera(width: int, height: int, rate_hz: float) -> CameraCalib:
+    """The same camera taking full-resolution stills: the video's lens (same normalized distortion and body_T_cam),
+    the sensor read at `width` x `height`. The focal length scales with the width; a sensor of another aspect
+    ratio than the video's 4:3 is centre-cropped vertically."""
+    s = width / WIDTH_PX
+    crop_px = (HEIGHT_PX * s - height) / 2.0
+    return CameraCalib(
+        width=int(width),
+        height=int(height),
+        fx=FX_PX * s,
+        fy=FY_PX * s,
+        cx=(CX_PX + 0.5) * s - 0.5,
+        cy=(CY_PX + 0.5) * s - 0.5 - crop_px,
+        dist=DIST_RADTAN.copy(),
+        body_T_cam=body_T_cam(),
+        rate_hz=rate_hz,
+    )

@@ -31,8 +31,19 @@ class Scenario:
     duration_s: float
     camera_rate_hz: float
     imu_rate_hz: float
+    stills_camera: CameraCalib | None = None  # full-resolution stills (`mav0/cam1`), None: no stills stream
+    stills_offset_ns: int = 0  # time of the first still after t0_ns, ns
 
     def frame_times_ns(self) -> np.ndarray:
         """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples)."""
         n = int(np.floor(self.duration_s * self.camera_rate_hz + 1e-9))
         return np.int64(self.t0_ns) + np.round(np.arange(n) * (1e9 / self.camera_rate_hz)).astype(np.int64)
+
+    def stills_times_ns(self) -> np.ndarray:
+        """(S,) times of the stills, ns: t0 + offset + k / rate within the duration (empty without stills)."""
+        if self.stills_camera is None:
+            return np.zeros(0, np.int64)
+        period_ns = 1e9 / self.stills_camera.rate_hz
+        n = int(np.floor((self.duration_s * 1e9 - self.stills_offset_ns) / period_ns + 1e-9)) + 1
+        t = np.int64(self.t0_ns + self.stills_offset_ns) + np.round(np.arange(n) * period_ns).astype(np.int64)
+        return t[t < self.t0_ns + int(round(self.duration_s * 1e9))]

@@ -1,5 +1,8 @@
 """Built-in scenarios: camera motions (hand-held, smooth in acceleration) and the scenes they look at.
 
+Each scene holds the part (`vio.sim.parts`: the 76.2 mm cube by default, or cube_features, freeform, a user STL)
+standing on its support, with its part frame axis-aligned with the world.
+
 orbit:   a 76.2 mm cube on a 2.0 x 1.6 m table in a 4.1 x 4.0 m room; the camera circles the cube at 0.38-0.66 m
          in four rings at 0, 20, 40 and 60 deg elevation (one loop per ring, 15 s per ring, 4 s C3 transitions),
          with hand wobble (sums of sinusoids, seeded phases) and the optical axis wandering around the cube.
@@ -13,50 +16,51 @@ from collections.abc import Callable
 
 import numpy as np
 
-from vio.sim.scene import Box, Scene
+from vio.sim.parts import Part
+from vio.sim.scene import Box, PlacedPart, Scene
 from vio.sim.trajectory import PoseFn, Sinusoids, look_at, smoothstep7
 
-CUBE_SIZE_M = 0.0762  # 3 inches
-_CUBE_SHADE = (0.55, 0.85, 0.70, 0.40, 0.45, 1.0)  # -x, +x, -y, +y, bottom, top: light from +x and above
 _WALL_SHADE = (0.85, 0.80, 0.90, 0.75, 0.70, 0.95)  # room walls, floor (face 4), ceiling (face 5)
 _SOLID_SHADE = (0.68, 0.76, 0.72, 0.64, 0.50, 0.92)
 
 
-def _cube_on(x: float, y: float, z_top: float) -> Box:
-    h = CUBE_SIZE_M / 2.0
-    lo = np.array([x - h, y - h, z_top])
-    return Box("object", lo, lo + CUBE_SIZE_M, CUBE_SIZE_M / 256.0, "object", hidden_faces=(4,), shade=_CUBE_SHADE)
+def _part_on(part: Part, surface: str, x: float, y: float, z_top: float) -> PlacedPart:
+    """The part standing on a support whose top is at height z_top, its base centred on (x, y), world m."""
+    world_T_part = np.eye(4)
+    world_T_part[:3, 3] = [x, y, z_top]
+    return PlacedPart(part, world_T_part, surface)
 
 
-def tabletop_scene(texture_seed: int) -> Scene:
-    """The orbit scene: the cube at the origin on a table top (z = 0), backdrop walls 1.9-2.3 m away."""
+def tabletop_scene(texture_seed: int, part: Part, surface: str = "speckle") -> Scene:
+    """The orbit scene: the part at the origin on a table top (z = 0), backdrop walls 1.9-2.3 m away."""
     table = Box("table", np.array([-1.0, -0.8, -0.03]), np.array([1.0, 0.8, 0.0]), 0.001, "table", False, (4,))
     room = Box("room", np.array([-2.0, -1.7, -0.75]), np.array([2.1, 2.3, 1.75]), 0.004, "wall", True, (), _WALL_SHADE)
-    cube = _cube_on(0.0, 0.0, 0.0)
-    return Scene(room, (cube, table), 0, texture_seed, {"room_lo": room.lo, "room_hi": room.hi})
+    placed = _part_on(part, surface, 0.0, 0.0, 0.0)
+    return Scene(room, (table,), placed, texture_seed, {"room_lo": room.lo, "room_hi": room.hi})
 
 
-def room_scene(texture_seed: int) -> Scene:
-    """A 4 x 5 x 2.6 m room (floor z = 0) with a table carrying the cube, a cabinet and a low chest."""
+def room_scene(texture_seed: int, part: Part, surface: str = "speckle") -> Scene:
+    """A 4 x 5 x 2.6 m room (floor z = 0) with a table carrying the part, a cabinet and a low chest."""
     room = Box("room", np.array([-2.0, -2.5, 0.0]), np.array([2.0, 2.5, 2.6]), 0.004, "wall", True, (), _WALL_SHADE)
     table = Box("table", np.array([-0.6, -0.4, 0.72]), np.array([0.6, 0.4, 0.75]), 0.002, "table", False, (4,))
     cabinet = Box("cabinet", np.array([-2.0, -0.5, 0.0]), np.array([-1.6, 0.7, 1.1]), 0.003, "furniture")
     chest = Box("chest", np.array([1.2, 1.7, 0.0]), np.array([2.0, 2.5, 0.5]), 0.003, "furniture")
     base = Box("table_base", np.array([-0.3, -0.2, 0.0]), np.array([0.3, 0.2, 0.72]), 0.003, "furniture", False, (4,))
-    cube = _cube_on(0.1, -0.05, 0.75)
+    placed = _part_on(part, surface, 0.1, -0.05, 0.75)
     solids = tuple(Box(b.name, b.lo, b.hi, b.texel_m, b.style, False, (4,), _SOLID_SHADE) for b in (cabinet, chest))
-    return Scene(room, (cube, table, base, *solids), 0, texture_seed, {"room_lo": room.lo, "room_hi": room.hi})
+    return Scene(room, (table, base, *solids), placed, texture_seed, {"room_lo": room.lo, "room_hi": room.hi})
 
 
-def trajectory_room_scene(p_world: np.ndarray, texture_seed: int) -> Scene:
-    """A room around a recorded trajectory: walls 2 m beyond its bounding box, floor 1.2 m below it, a cube."""
+def trajectory_room_scene(p_world: np.ndarray, texture_seed: int, part: Part, surface: str = "speckle") -> Scene:
+    """A room around a recorded trajectory: walls 2 m beyond its bounding box, floor 1.2 m below it, the part on
+    the floor below the trajectory's centre."""
     lo = p_world.min(axis=0) - np.array([2.0, 2.0, 1.2])
     hi = p_world.max(axis=0) + np.array([2.0, 2.0, 1.5])
     texel = max(0.004, float((hi - lo).max()) / 2048.0)
     room = Box("room", lo, hi, texel, "wall", True, (), _WALL_SHADE)
     centre = 0.5 * (p_world.min(axis=0) + p_world.max(axis=0))
-    cube = _cube_on(float(centre[0]), float(centre[1]), float(lo[2]))
-    return Scene(room, (cube,), 0, texture_seed, {"room_lo": lo, "room_hi": hi})
+    placed = _part_on(part, surface, float(centre[0]), float(centre[1]), float(lo[2]))
+    return Scene(room, (), placed, texture_seed, {"room_lo": lo, "room_hi": hi})
 
 
 def _camera_fn(pos: Callable, target: Callable, roll: Callable) -> PoseFn:
@@ -77,7 +81,7 @@ def _hand(rng: np.random.Generator) -> tuple[Sinusoids, Sinusoids, Sinusoids]:
 
 def orbit_camera(
     rng: np.random.Generator,
-    cube_centre: np.ndarray,
+    part_centre: np.ndarray,
     ring_s: float = 15.0,
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0),
     radius_min_m: float = 0.38,
@@ -112,12 +116,12 @@ def orbit_camera(
         az = az0 + w_az * t + az_wob(t)[:, 0]
         r = r_mid + rad(t)[:, 0]
         ring = np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], axis=1)
-        return cube_centre + r[:, None] * ring + pos_wob(t)
+        return part_centre + r[:, None] * ring + pos_wob(t)
 
-    return _camera_fn(pos, lambda t: cube_centre + aim_wob(t), lambda t: roll_wob(t)[:, 0])
+    return _camera_fn(pos, lambda t: part_centre + aim_wob(t), lambda t: roll_wob(t)[:, 0])
 
 
-def figure8_camera(rng: np.random.Generator, cube_centre: np.ndarray, loop_s: float = 10.0) -> PoseFn:
+def figure8_camera(rng: np.random.Generator, part_centre: np.ndarray, loop_s: float = 10.0) -> PoseFn:
     """A horizontal figure eight 0.7 x 0.32 m, 0.26-0.34 m above the table, in front of the cube."""
     w = 2.0 * np.pi / loop_s
     ph = rng.uniform(0.0, 2.0 * np.pi)
@@ -129,7 +133,7 @@ def figure8_camera(rng: np.random.Generator, cube_centre: np.ndarray, loop_s: fl
         loop = np.stack([0.35 * np.sin(a), 0.16 * np.sin(2.0 * a), 0.04 * np.sin(a + 1.0)], axis=1)
         return centre + loop + pos_wob(t)
 
-    return _camera_fn(pos, lambda t: cube_centre + aim_wob(t), lambda t: roll_wob(t)[:, 0])
+    return _camera_fn(pos, lambda t: part_centre + aim_wob(t), lambda t: roll_wob(t)[:, 0])
 
 
 def room_camera(rng: np.random.Generator, lap_s: float = 25.0) -> PoseFn:

@@ -1,8 +1,9 @@
-"""Scene geometry: axis-aligned textured boxes in the world frame (z up, metres).
+"""Scene geometry in the world frame (z up, metres): axis-aligned textured boxes and the part, a triangle mesh.
 
 One box is the room (the camera is inside it; its inner faces are the walls, floor and ceiling); the others are
-solid boxes seen from outside (the table, furniture, and the object: the cube). A face is numbered
-`2 * axis + side` (axis 0/1/2 = x/y/z, side 0 = the low face, 1 = the high face).
+solid boxes seen from outside (the table, furniture). A box face is numbered `2 * axis + side` (axis 0/1/2 =
+x/y/z, side 0 = the low face, 1 = the high face). The part (`PlacedPart`: the measured object, a `vio.sim.parts.Part`
+in its own frame in millimetres) stands on a support at `world_T_part`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ from functools import cached_property
 import numpy as np
 
 from vio.errors import SimulationError
+from vio.sim.parts import Part
+
+SURFACES = ("speckle", "plain")  # the part's paint (vio.sim.part_render)
 
 
 @dataclass(frozen=True)
@@ -49,13 +53,44 @@ class Box:
 
 
 @dataclass(frozen=True)
+class PlacedPart:
+    """The part in the world: its mesh (part frame, mm), its pose, and its surface finish."""
+
+    part: Part
+    world_T_part: np.ndarray  # (4, 4) part frame (origin on the base, z up) in world, translation in m
+    surface: str = "speckle"  # "speckle" | "plain"
+
+    def vertices_world(self) -> np.ndarray:
+        """(V, 3) vertices in world, m."""
+        v = self.part.vertices_mm * 1e-3
+        return v @ self.world_T_part[:3, :3].T + self.world_T_part[:3, 3]
+
+    def triangles_world(self) -> np.ndarray:
+        """(F, 3, 3) triangles in world, m, counter-clockwise seen from outside."""
+        return self.vertices_world()[self.part.faces]
+
+    def bounds_corners_world(self) -> np.ndarray:
+        """(8, 3) corners of the part's bounding box (part frame) in world, m; bit 0/1/2 selects max x/y/z."""
+        b = self.part.bounds_mm() * 1e-3
+        c = np.array([[b[(i >> k) & 1, k] for k in range(3)] for i in range(8)])
+        return c @ self.world_T_part[:3, :3].T + self.world_T_part[:3, 3]
+
+    def seen_faces(self) -> np.ndarray:
+        """(F,) bool: faces a camera can see (not the base lying on the support, z = 0 facing down)."""
+        v = self.part.vertices_mm[self.part.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        down = n[:, 2] < -0.999 * np.linalg.norm(n, axis=1)
+        return ~(down & (np.abs(v[:, :, 2]).max(axis=1) < 1e-6))
+
+
+@dataclass(frozen=True)
 class Scene:
-    """The room, the solid boxes, and which box is the measured object."""
+    """The room, the solid boxes, and the measured part."""
 
     room: Box
     solids: tuple[Box, ...]
-    object_index: int | None  # index into solids of the object (the cube), None if there is none
-    texture_seed: int  # seed of the procedural textures
+    part: PlacedPart | None  # the measured object; None if there is none
+    texture_seed: int  # seed of the procedural textures (boxes and the part's speckle)
     meta: dict = field(default_factory=dict)  # descriptive values for scene.yaml
 
     @property
@@ -63,24 +98,11 @@ class Scene:
         """All boxes; index 0 is the room (surface ids are `6 * box_index + face`)."""
         return (self.room, *self.solids)
 
-    @property
-    def object_box(self) -> Box:
-        if self.object_index is None:
-            raise SimulationError("this scene has no object")
-        return self.solids[self.object_index]
-
     def object_corners_world(self) -> np.ndarray:
-        """(8, 3) corners of the object (the cube) in world, m."""
-        return self.object_box.corners()
-
-    def object_triangles(self) -> np.ndarray:
-        """(12, 3, 3) outward-facing (counter-clockwise) triangles of the object's surface, world, m."""
-        c = self.object_box.corners()
-        quads = [(0, 2, 6, 4), (1, 5, 7, 3), (0, 4, 5, 1), (2, 3, 7, 6), (0, 1, 3, 2), (4, 6, 7, 5)]
-        tris = []
-        for a, b, cc, d in quads:
-            tris += [(a, b, cc), (a, cc, d)]
-        return c[np.array(tris)]
+        """(8, 3) corners of the part's bounding box in world, m (the cube's corners for the cube)."""
+        if self.part is None:
+            raise SimulationError("this scene has no part")
+        return self.part.bounds_corners_world()
 
     @cached_property
     def _surfaces(self) -> list[tuple[int, int, float]]:
@@ -92,12 +114,13 @@ class Scene:
         return out
 
     def sample_surface_points(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """(n, 3) world points uniformly (by area) on the textured surfaces a camera can see, m.
+        """(n, 3) world points uniformly (by area) on the surfaces a camera can see (boxes and the part), m.
 
-        Points hidden inside another box (e.g. the table top under the cube) are rejected and redrawn.
+        Points hidden inside another box (e.g. the table top under the part) or under the part's footprint are
+        rejected and redrawn.
         """
         surf = self._surfaces
-        area = np.array([s[2] for s in surf])
+        area = np.array([s[2] for s in surf] + [self._part_area])
         out = np.zeros((0, 3))
         while out.shape[0] < n:
             m = max(2 * (n - out.shape[0]), 16)
@@ -105,6 +128,9 @@ class Scene:
             uv = rng.uniform(0.0, 1.0, (m, 2))
             pts = np.zeros((m, 3))
             normal = np.zeros((m, 3))  # towards the viewer: outward for solids, inward for the room
+            on_part = pick == len(surf)
+            if on_part.any():
+                pts[on_part], normal[on_part] = self._part_points(int(on_part.sum()), rng)
             for k, (bi, f, _) in enumerate(surf):
                 sel = pick == k
                 if not sel.any():
@@ -120,5 +146,35 @@ class Scene:
             hidden = np.zeros(m, bool)
             for box in self.solids:
                 hidden |= box.contains(probe, margin=0.0)
+            hidden |= self._under_part(probe) & ~on_part
             out = np.vstack([out, pts[~hidden]])
         return out[:n]
+
+    @cached_property
+    def _part_area(self) -> float:
+        if self.part is None:
+            return 0.0
+        tri = self.part.triangles_world()[self.part.seen_faces()]
+        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+
+    def _part_points(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """m points uniformly on the part's seen faces and their outward normals, world."""
+        tri = self.part.triangles_world()[self.part.seen_faces()]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = np.linalg.norm(n, axis=1)
+        face = rng.choice(len(tri), size=m, p=area / area.sum())
+        a, b = rng.uniform(size=(2, m))
+        fold = a + b > 1.0
+        a[fold], b[fold] = 1.0 - a[fold], 1.0 - b[fold]
+        t = tri[face]
+        p = t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+        return p, n[face] / area[face, None]
+
+    def _under_part(self, p: np.ndarray) -> np.ndarray:
+        """(N,) bool: points inside the part's bounding box (support points under its footprint), part frame."""
+        if self.part is None:
+            return np.zeros(len(p), bool)
+        T = np.linalg.inv(self.part.world_T_part)
+        q = (p @ T[:3, :3].T + T[:3, 3]) * 1e3  # part frame, mm
+        b = self.part.part.bounds_mm()
+        return np.all((q > b[0] - 1e-3) & (q < b[1] + 1e-3), axis=1)

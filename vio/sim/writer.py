@@ -9,10 +9,10 @@ import numpy as np
 import yaml
 
 from vio.atomic import write_text
-from vio.records import GroundTruth, ImuSeries
+from vio.records import CameraCalib, GroundTruth, ImuSeries
+from vio.sim.parts import write_stl
 from vio.sim.render import Renderer, camera_poses
 from vio.sim.scenario import Scenario
-from vio.sim.stl import write_stl
 from vio.sim.workers import render_in_workers
 from vio.writers.asl import AslWriter, encode_png
 
@@ -20,8 +20,8 @@ log = logging.getLogger(__name__)
 
 
 def scene_yaml_text(sc: Scenario) -> str:
-    """scene/scene.yaml: what was simulated (scenario, seed, IMU grade, object size and pose, room bounds)."""
-    obj = sc.scene.object_box
+    """scene/scene.yaml: what was simulated (scenario, seed, IMU grade, the part and its pose, room bounds)."""
+    placed = sc.scene.part
     meta = {
         "scenario": sc.name,
         "seed": int(sc.seed),
@@ -30,11 +30,17 @@ def scene_yaml_text(sc: Scenario) -> str:
         "t0_ns": int(sc.t0_ns),
         "camera_rate_hz": float(sc.camera_rate_hz),
         "imu_rate_hz": float(sc.imu_rate_hz),
-        "object": {
-            "shape": "cube",
-            "mesh": "object.stl",
-            "size_m": [round(float(v), 9) for v in obj.hi - obj.lo],
-            "centre_world_m": [round(float(v), 9) for v in 0.5 * (obj.lo + obj.hi)],
+        "object": None
+        if placed is None
+        else {
+            "part": placed.part.name,
+            "description": placed.part.description,
+            "surface": placed.surface,
+            "cad": "cad.stl (part frame, mm)",
+            "mesh": "object.stl (world frame, m)",
+            "pose": "part_pose.yaml (world_T_part)",
+            "dimensions_mm": {k: round(float(v), 6) for k, v in placed.part.dimensions_mm.items()},
+            "bounds_part_mm": [[round(float(v), 6) for v in row] for row in placed.part.bounds_mm()],
         },
         "boxes": [
             {
@@ -50,44 +56,68 @@ def scene_yaml_text(sc: Scenario) -> str:
     return "# vio simulated scene (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False)
 
 
+def part_pose_yaml_text(world_T_part: np.ndarray) -> str:
+    """scene/part_pose.yaml: the part frame (cad.stl, mm) in the world (object.stl, trajectory; m)."""
+    meta = {
+        "world_T_part": [[round(float(v), 12) for v in row] for row in world_T_part],
+        "units": "rotation unitless, translation m; a CAD point p_mm maps to world as R @ (p_mm / 1000) + t",
+    }
+    return "# vio simulated part pose (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
+
+
 def write_capture(
     writer: AslWriter,
     sc: Scenario,
     imu: ImuSeries,
     gt: GroundTruth,
     images: bool,
-    image_seed: np.random.SeedSequence,
+    image_seeds: tuple[np.random.SeedSequence, np.random.SeedSequence],
     workers: int | None = None,
 ) -> None:
-    """Write every file of the capture for scenario `sc` into `writer`."""
+    """Write every file of the capture for scenario `sc` into `writer`; `image_seeds` seed the noise of the video
+    frames and of the stills."""
     comment = f"vio simulator ({sc.name}, seed {sc.seed})"
     writer.write_camera(sc.camera, comment)
     writer.write_imu(sc.imu_calib, imu, f"vio simulator ({sc.name}, seed {sc.seed}, {sc.imu_grade} IMU)")
     writer.write_groundtruth(gt)
-    write_stl(writer.scene_dir / "object.stl", sc.scene.object_triangles())
+    placed = sc.scene.part
+    if placed is not None:
+        part = placed.part
+        write_stl(writer.scene_dir / "cad.stl", part.vertices_mm, part.faces, f"vio part {part.name}: part frame, mm")
+        write_stl(writer.scene_dir / "object.stl", placed.vertices_world(), part.faces, f"vio {part.name}: world, m")
+        write_text(writer.scene_dir / "part_pose.yaml", part_pose_yaml_text(placed.world_T_part))
     write_text(writer.scene_dir / "scene.yaml", scene_yaml_text(sc))
     if not images:
         return
     t_ns = sc.frame_times_ns()
-    for t, png in zip(t_ns, render_pngs(sc, t_ns, image_seed, workers), strict=True):
+    for t, png in zip(t_ns, render_pngs(sc, sc.camera, t_ns, image_seeds[0], workers), strict=True):
         writer.add_png(int(t), png)
+    if sc.stills_camera is not None:
+        writer.write_camera(sc.stills_camera, f"{comment}: full-resolution stills", cam_id=1)
+        t_ns = sc.stills_times_ns()
+        for t, png in zip(t_ns, render_pngs(sc, sc.stills_camera, t_ns, image_seeds[1], workers), strict=True):
+            writer.add_png(int(t), png, cam_id=1)
 
 
 def render_pngs(
-    sc: Scenario, t_ns: np.ndarray, image_seed: np.random.SeedSequence, workers: int | None = None
+    sc: Scenario,
+    camera: CameraCalib,
+    t_ns: np.ndarray,
+    image_seed: np.random.SeedSequence,
+    workers: int | None = None,
 ) -> Iterator[bytes]:
-    """Yield the PNG bytes of each frame in order; frame i's noise comes from image_seed.spawn(F)[i].
+    """Yield the PNG bytes of each image of `camera` in order; image i's noise comes from image_seed.spawn(F)[i].
 
     Frames are rendered in this process or by `workers` processes (default 2 when there are 40+ frames, see
     `vio.sim.workers`); the bytes do not depend on the number of workers.
     """
-    poses = camera_poses(sc, t_ns)
+    poses = camera_poses(sc, t_ns, camera)
     jobs = list(zip(poses, image_seed.spawn(len(t_ns)), strict=True))
     if workers is None:
         workers = 2 if len(jobs) >= 40 else 1
     if workers <= 1:
-        renderer = Renderer(sc.scene, sc.camera)
+        renderer = Renderer(sc.scene, camera)
         for world_T_cam, seq in jobs:
             yield encode_png(renderer.render(world_T_cam, np.random.default_rng(seq)))
         return
-    yield from render_in_workers(sc.scene, sc.camera, jobs, workers)
+    yield from render_in_workers(sc.scene, camera, jobs, workers)

@@ -54,7 +54,7 @@ class AslWriter:
         self.mav0 = self.tmp / "mav0"
         (self.mav0 / "cam0" / "data").mkdir(parents=True)
         (self.mav0 / "imu0").mkdir(parents=True)
-        self._frames: list[int] = []
+        self._frames: dict[int, list[int]] = {0: []}  # camera id -> frame times written, ns
         self._closed = False
 
     @property
@@ -63,8 +63,15 @@ class AslWriter:
         d.mkdir(exist_ok=True)
         return d
 
-    def write_camera(self, cam: CameraCalib, comment: str = "vio camera") -> None:
-        write_text(self.mav0 / "cam0" / "sensor.yaml", camera_yaml_text(cam, comment))
+    def _cam_dir(self, cam_id: int) -> Path:
+        """`mav0/camN/` with its `data/` folder (cam0: the tracking video; cam1: full-resolution stills)."""
+        d = self.mav0 / f"cam{int(cam_id)}"
+        (d / "data").mkdir(parents=True, exist_ok=True)
+        self._frames.setdefault(int(cam_id), [])
+        return d
+
+    def write_camera(self, cam: CameraCalib, comment: str = "vio camera", cam_id: int = 0) -> None:
+        write_text(self._cam_dir(cam_id) / "sensor.yaml", camera_yaml_text(cam, comment))
 
     def write_imu(self, calib: ImuCalib, imu: ImuSeries, comment: str = "vio imu") -> None:
         write_text(self.mav0 / "imu0" / "sensor.yaml", imu_yaml_text(calib, comment))
@@ -73,18 +80,17 @@ class AslWriter:
             lines.append(f"{int(t)}," + ",".join(f"{x:.9g}" for x in (*w, *a)))
         write_text(self.mav0 / "imu0" / "data.csv", "\n".join(lines) + "\n")
 
-    def add_frame(self, t_ns: int, image: np.ndarray) -> None:
-        """Write one image as `<t_ns>.png` (lossless; PNG compression level fixed for determinism)."""
-        if self._frames and t_ns <= self._frames[-1]:
-            raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
-        self.add_png(t_ns, encode_png(image))
+    def add_frame(self, t_ns: int, image: np.ndarray, cam_id: int = 0) -> None:
+        """Write one image as `camN/data/<t_ns>.png` (lossless; PNG compression level fixed for determinism)."""
+        self.add_png(t_ns, encode_png(image), cam_id)
 
-    def add_png(self, t_ns: int, png: bytes) -> None:
-        """Write one already encoded PNG image as `<t_ns>.png` (e.g. encoded in a worker process)."""
-        if self._frames and t_ns <= self._frames[-1]:
-            raise CaptureError(f"frame times must increase ({t_ns} after {self._frames[-1]})", self.root)
-        (self.mav0 / "cam0" / "data" / f"{int(t_ns)}.png").write_bytes(png)
-        self._frames.append(int(t_ns))
+    def add_png(self, t_ns: int, png: bytes, cam_id: int = 0) -> None:
+        """Write one already encoded PNG image as `camN/data/<t_ns>.png` (e.g. encoded in a worker process)."""
+        d, frames = self._cam_dir(cam_id), self._frames[int(cam_id)]
+        if frames and t_ns <= frames[-1]:
+            raise CaptureError(f"cam{cam_id} frame times must increase ({t_ns} after {frames[-1]})", self.root)
+        (d / "data" / f"{int(t_ns)}.png").write_bytes(png)
+        frames.append(int(t_ns))
 
     def write_groundtruth(self, gt: GroundTruth) -> None:
         d = self.mav0 / "state_groundtruth_estimate0"
@@ -97,8 +103,9 @@ class AslWriter:
         write_text(d / "sensor.yaml", "%YAML:1.0\nsensor_type: visual-inertial\ncomment: ground truth\n")
 
     def close(self) -> Path:
-        lines = ["#timestamp [ns],filename"] + [f"{t},{t}.png" for t in self._frames]
-        write_text(self.mav0 / "cam0" / "data.csv", "\n".join(lines) + "\n")
+        for cam_id, frames in self._frames.items():
+            lines = ["#timestamp [ns],filename"] + [f"{t},{t}.png" for t in frames]
+            write_text(self.mav0 / f"cam{cam_id}" / "data.csv", "\n".join(lines) + "\n")
         if self.root.exists():
             shutil.rmtree(self.root)
         os.replace(self.tmp, self.root)

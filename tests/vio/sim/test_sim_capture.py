@@ -15,8 +15,8 @@ from vio.errors import CaptureError, SimulationError
 from vio.readers import open_capture
 from vio.readers.asl import read_asl
 from vio.sim.api import load_scenario, simulate
+from vio.sim.parts import read_stl_mesh
 from vio.sim.render import Renderer, camera_poses
-from vio.sim.stl import read_stl
 from vio.trajio import Trajectory, write_tum
 from vio.writers.asl import AslWriter
 
@@ -36,7 +36,8 @@ def test_same_seed_gives_identical_files_and_another_seed_does_not(tmp_path):
     b = simulate("figure8", tmp_path / "b", seed=11, duration_s=0.6, workers=2)  # worker count does not matter
     c = simulate("figure8", tmp_path / "c", seed=12, duration_s=0.6, workers=1)
     da, db, dc = _digests(a), _digests(b), _digests(c)
-    assert len(da) == 5 + 12 + 3  # csv/yaml files, 12 frames, scene (stl + yaml) and the ground-truth yaml
+    assert len(da) == 5 + 12 + 5  # csv/yaml files, 12 frames, scene (object.stl, cad.stl, part_pose.yaml,
+    # scene.yaml) and the ground-truth yaml
     assert da == db
     differs = {k for k in da if da[k] != dc.get(k)}
     for stream in ("mav0/imu0/data.csv", "mav0/state_groundtruth_estimate0/data.csv", "mav0/cam0/data/"):
@@ -58,10 +59,8 @@ def test_capture_round_trip(tmp_path, sim_capture):
     img = Renderer(sc.scene, sc.camera).render(camera_poses(sc, cap.frame_t_ns[:1])[0], None)
     diff = np.abs(cap.load_image(0).astype(int) - img)
     assert diff.mean() < 2.0 and diff.max() <= 12  # the same view up to the pixel noise (sigma 1.5)
-    tris = read_stl(cap.scene_dir / "object.stl")
-    assert tris.shape == (12, 3, 3) and np.allclose(
-        tris.reshape(-1, 3).max(axis=0) - tris.reshape(-1, 3).min(0), 0.0762
-    )
+    v, f = read_stl_mesh(cap.scene_dir / "object.stl")
+    assert f.shape == (12, 3) and np.allclose(v.max(axis=0) - v.min(axis=0), 0.0762)
     # Written again with AslWriter and read back: equal.
     with AslWriter(tmp_path / "copy") as w:
         w.write_camera(cap.camera)

@@ -89,8 +89,12 @@ def _corner_error(sc, renderer: Renderer, t_s: float) -> float | None:
 
 
 def test_cube_corners_land_on_rendered_corners():
-    """The corner nearest the camera, measured on the image every 1.25 s of the three upper rings of the orbit."""
-    sc = load_scenario("orbit", seed=0)
+    """The corner nearest the camera, measured on the image every 1.25 s of the three upper rings of the orbit.
+
+    On the plain (unspeckled) paint: a speckle dot straddling an edge moves the mid-level crossing of the step
+    profile this measurement relies on (measured with speckle: median 0.31 px, max 0.67 px; plain: 0.045 / 0.075 px),
+    which is a property of the measurement, not of the geometry; the speckle is albedo only."""
+    sc = load_scenario("orbit", seed=0, surface="plain")
     renderer = Renderer(sc.scene, sc.camera)
     errors = [e for t in np.arange(16.25, 60.0, 1.25) if (e := _corner_error(sc, renderer, float(t))) is not None]
     assert len(errors) >= 15, f"only {len(errors)} corners measurable"
