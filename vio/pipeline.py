@@ -185,7 +185,7 @@ def run_capture(
                 if sinks and produced:
                     live = est.landmarks(sync=False)
                     produced[-1] = dataclasses.replace(
-                        produced[-1], landmark_ids=live.ids, landmarks_world=live.points_world
+                        produced[-1], landmark_ids=live.track_ids, landmarks_world=live.points_world
                     )
                     for s in produced:
                         for sink in sinks:

@@ -24,14 +24,22 @@ def anchor_yaw_translation(est_world_T_body: np.ndarray, gt_world_T_body: np.nda
 def reprojection_errors_px(
     camera: CameraCalib,
     world_T_cam: np.ndarray,
-    landmark_ids: np.ndarray,
+    landmark_track_ids: np.ndarray,
     landmarks_world: np.ndarray,
     track_ids: np.ndarray,
     uv: np.ndarray,
 ) -> np.ndarray:
     """(M,) pixel distances between tracked features (distorted px) and the projections of the estimated landmarks
-    with the same ids (world frame, m) through world_T_cam; landmarks behind the camera are left out."""
-    common, i_lm, i_tr = np.intersect1d(np.asarray(landmark_ids), np.asarray(track_ids), return_indices=True)
+    (world frame, m) through world_T_cam, matched by the track id each landmark came from (`landmark_track_ids`);
+    landmarks behind the camera are left out.
+
+    Several landmarks may share a track id (a long track split into segments, listed oldest first): a feature is
+    compared with the last of them, the one its current view belongs to."""
+    newest_first = np.arange(len(landmark_track_ids))[::-1]
+    common, i_new, i_tr = np.intersect1d(
+        np.asarray(landmark_track_ids)[newest_first], np.asarray(track_ids), return_indices=True
+    )  # intersect1d keeps the first instance of a repeated id
+    i_lm = newest_first[i_new]
     if common.size == 0:
         return np.zeros(0)
     cam_T_world = np.linalg.inv(world_T_cam)

@@ -53,3 +53,15 @@ def test_reprojection_errors_px():
     behind[:] = world_T_cam[:3, 3] - world_T_cam[:3, 2]  # one metre behind the camera
     assert reprojection_errors_px(cam, world_T_cam, ids, behind, track_ids, track_uv).size == 0
     assert reprojection_errors_px(cam, world_T_cam, ids, p_world, np.array([1, 2]), uv[:2]).size == 0
+
+
+def test_reprojection_uses_the_newest_segment_of_a_split_track():
+    """A track split into segments gives several landmarks with its track id, oldest first (the estimator's order):
+    its feature is compared with the newest, the landmark its current view belongs to."""
+    cam = CameraCalib(640, 480, 450.0, 455.0, 320.0, 240.0, np.zeros(4), np.eye(4))
+    world_T_cam = np.eye(4)
+    here, drifted = np.array([0.1, -0.2, 3.0]), np.array([0.4, 0.1, 3.0])
+    uv = cam.project(here)
+    track_ids = np.array([5, 9, 5])  # track 5: segment 0 (drifted off), track 9, then track 5's segment 1
+    err = reprojection_errors_px(cam, world_T_cam, track_ids, np.array([drifted, here, here]), np.array([5]), uv)
+    np.testing.assert_allclose(err, [0.0], atol=1e-9)
