@@ -4,6 +4,8 @@
 //
 // usage: node --experimental-websocket docs/images/screenshot.mjs URL OUT.png [WAIT_S=40] [WIDTHxHEIGHT=1600x1000]
 // URL is the web viewer address that `vio run --serve` logs (or `rerun --serve-web --bind 127.0.0.1 FILE.rrd`).
+// A live shot: `vio run --serve` outpaces the viewer's loading, so pause vio at the wanted moment (kill -STOP, by
+// its pid) while this waits, and kill -CONT it after the shot; the viewer process keeps serving what it received.
 import { spawn } from "node:child_process";
 import { mkdtempSync, rmSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
