@@ -197,9 +197,8 @@ class Renderer:
         on_part = prim >= 0
         if not on_part.any():
             return self._shade_boxes(o, d, t, sid, norm15)
-        out = np.empty(t.shape, np.float32)
-        box = ~on_part
-        out[box] = self._shade_boxes(o, [c[box] for c in d], t[box], sid[box], norm15[box])
+        # every ray through the box shader (cheaper than gathering the box rays), part hits as the room's face 0
+        out = self._shade_boxes(o, d, t, np.where(on_part, 0, sid), norm15)
         dp = np.stack([c[on_part] for c in d], axis=-1).astype(np.float64)
         tp = t[on_part].astype(np.float64)
         p = o.astype(np.float64) + tp[:, None] * dp

@@ -124,7 +124,7 @@ class Scene:
         out = np.zeros((0, 3))
         while out.shape[0] < n:
             m = max(2 * (n - out.shape[0]), 16)
-            pick = rng.choice(len(surf), size=m, p=area / area.sum())
+            pick = rng.choice(len(area), size=m, p=area / area.sum())
             uv = rng.uniform(0.0, 1.0, (m, 2))
             pts = np.zeros((m, 3))
             normal = np.zeros((m, 3))  # towards the viewer: outward for solids, inward for the room
