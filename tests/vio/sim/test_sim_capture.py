@@ -132,6 +132,28 @@ def test_cli_simulate_smoke(tmp_path):
     assert "imu_grade: ideal" in (tmp_path / "r" / "scene" / "scene.yaml").read_text()
 
 
+def test_cli_simulate_a_user_part_with_stills(tmp_path):
+    """A user's STL in metres, plain paint, stills: the CAD comes back in millimetres on its base."""
+    from vio.sim.parts import build_part, read_stl_mesh, write_stl
+
+    cube = build_part("cube")
+    stl = tmp_path / "block.stl"
+    write_stl(stl, cube.vertices_mm * [1e-3, 0.5e-3, 0.25e-3] + [1.0, 2.0, 3.0], cube.faces, "a user part in metres")
+    cmd = [*VIO, "simulate", "orbit", "--out", str(tmp_path / "o"), "--duration", "0.6", "--object", str(stl)]
+    cmd += ["--object-units", "m", "--surface", "plain", "--stills", "2", "--stills-size", "800x600"]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    v, _ = read_stl_mesh(tmp_path / "o" / "scene" / "cad.stl")
+    assert np.allclose(v.min(axis=0), [-38.1, -19.05, 0.0], atol=1e-3)
+    assert np.allclose(v.max(axis=0), [38.1, 19.05, 19.05], atol=1e-3)
+    cap = open_capture(tmp_path / "o")
+    assert cap.stills is not None and len(cap.stills) == 2 and cap.stills.load_image(0).shape == (600, 800)
+    assert "part: block" in (tmp_path / "o" / "scene" / "scene.yaml").read_text()
+    cmd = [*VIO, "simulate", "orbit", "--out", str(tmp_path / "x"), "--object", str(tmp_path / "no.stl")]
+    bad = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert bad.returncode != 0 and "no.stl" in bad.stderr and "Traceback" not in bad.stderr
+
+
 @pytest.mark.parametrize(
     ("content", "match"),
     [
