@@ -44,3 +44,8 @@ class OutputError(VioError):
 
 class PartError(SimulationError):
     """A part model is invalid: a user's STL is missing, not an STL, empty, not watertight, or in unknown units."""
+
+
+class ModelError(VioError):
+    """The part model cannot be built or compared: no support plane or part found, a CAD or model file that is not
+    a valid mesh, a model that does not overlap the CAD, a run without images."""
