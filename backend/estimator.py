@@ -35,6 +35,7 @@ from backend.recovery import Recovery
 from backend.reidentification import Reidentification
 from backend.segments import TrackSegments
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
+from backend.uncertainty import ScaleUncertainty, scale_uncertainty
 from backend.vision_only import VisionOnlyMotion
 from vio.config import Config
 from vio.descriptors import Describe
@@ -105,6 +106,7 @@ class VioEstimator:
         self._init_kind = ""  # the start that succeeded: static | moving | visual
         self._timings_ms: list[float] = []
         self._num_still = 0  # keyframes with a zero-velocity update
+        self._scale: ScaleUncertainty | None = None  # from the graph, after finish()
 
     @property
     def initialised(self) -> bool:
@@ -146,7 +148,8 @@ class VioEstimator:
         return [self.state.state(k, start.solve_ms, self.use_imu) for k in start.keyframes]
 
     def finish(self, refine: bool = False) -> dict[str, Any]:
-        """Final estimate of all keyframes (and a batch LM refinement when asked); returns what was done."""
+        """Final estimate of all keyframes (and a batch LM refinement when asked), then the scale's uncertainty
+        from the graph (metric runs only); returns what was done."""
         info: dict[str, Any] = {"refined": False}
         st = self.state
         st.sync()
@@ -158,6 +161,12 @@ class VioEstimator:
             except RuntimeError as exc:
                 self._warn(f"batch refinement failed ({first_line(exc)}); keeping the online estimate")
             info["refine_s"] = time.perf_counter() - t0
+        if self.initialised and self.use_imu and self.cfg.estimator.scale_uncertainty:
+            t0 = time.perf_counter()
+            self._scale = scale_uncertainty(st.all_factors, st.values, sorted(st.t_ns))
+            info["scale_uncertainty_s"] = time.perf_counter() - t0
+            if self._scale is None:
+                self._warn("the scale's uncertainty could not be computed from the graph")
         return info
 
     def states(self) -> list[StateEstimate]:
@@ -201,6 +210,8 @@ class VioEstimator:
             recoveries=tuple(self.recovery.events),
             reidentifications=tuple(self.reidentification.events),
             warnings=tuple(self._warnings),
+            scale_sigma_rel=None if self._scale is None else self._scale.sigma_rel,
+            scale_pairs=() if self._scale is None else self._scale.pairs,
         )
 
     # ----------------------------------------------------------------- steady state

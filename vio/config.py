@@ -59,6 +59,7 @@ class EstimatorConfig:
     mode: str = "visual_inertial"  # visual_inertial | vision_only (projection factors only; scale unknown, Sim3 only)
     pixel_sigma: float = 1.0  # projection noise, px
     huber_k: float = 1.345  # robust loss threshold, in sigmas
+    scale_uncertainty: bool = True  # at the end, the scale's standard deviation from the graph's marginals
 
     @property
     def use_imu(self) -> bool:

@@ -118,6 +118,10 @@ def run_summary(
             "max": float(tm.max()) if tm.size else 0.0,
             "per_keyframe": [round(float(x), 2) for x in tm],
         },
+        "scale": {
+            "sigma_rel": stats.scale_sigma_rel,  # relative standard deviation of the metric scale (graph)
+            "pairs": [{"k_a": a, "k_b": b, "distance_m": d, "sigma_m": s} for a, b, d, s in stats.scale_pairs],
+        },
         "recoveries": [dataclasses.asdict(r) for r in stats.recoveries],
         "refine": refine,
         "warnings": list(cap.warnings) + list(stats.warnings) + errors,

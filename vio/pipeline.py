@@ -212,12 +212,14 @@ def run_capture(
     if not states:
         raise EstimationError(f"{cap.root}: the estimator never initialised ({n_kf} keyframes); see {out / 'run.json'}")
     outputs.write_estimate(out, states, online_states, landmarks, colours.of(landmarks.track_ids))
+    scale = "" if stats.scale_sigma_rel is None else f", scale sigma {100 * stats.scale_sigma_rel:.2f} % (graph)"
     log.info(
-        "%d keyframes, %d landmarks, %.1f s wall (%.2fx real time), %d recoveries",
+        "%d keyframes, %d landmarks, %.1f s wall (%.2fx real time), %d recoveries%s",
         len(states),
         len(landmarks),
         wall,
         summary["realtime_factor"],
         len(stats.recoveries),
+        scale,
     )
     return RunResult(out, summary, stats, states, landmarks)

@@ -228,3 +228,5 @@ class EstimatorStats:
     recoveries: tuple[RecoveryEvent, ...]
     reidentifications: tuple[ReidentificationEvent, ...]
     warnings: tuple[str, ...]
+    scale_sigma_rel: float | None = None  # relative standard deviation of the metric scale, from the graph
+    scale_pairs: tuple[tuple[int, int, float, float], ...] = ()  # (k_a, k_b, distance m, its sigma m) behind it

@@ -34,6 +34,9 @@ def test_outputs_are_complete_and_consistent(eqvio_run):
     assert run["status"] == "ok" and run["format"] == "eqvio" and run["num_frames"] == 240
     assert run["initialisation"] == "static"  # the MAV idles on the ground for the first seconds
     assert run["num_zero_velocity_updates"] > 5
+    # the scale's standard deviation from the graph's joint marginals of distant keyframes (12 s of real flight)
+    assert 0.0 < run["scale"]["sigma_rel"] < 0.05 and len(run["scale"]["pairs"]) >= 1
+    assert all(p["distance_m"] > 0.1 and p["sigma_m"] > 0.0 for p in run["scale"]["pairs"])
     assert len(run["keyframe_ms"]["per_keyframe"]) > 0 and run["config"]["estimator"]["pixel_sigma"] == 1.0
     states = np.loadtxt(out / "states.csv", delimiter=",", skiprows=1)
     assert states.shape == (summary["num_states"], 17) and np.isfinite(states).all()
