@@ -81,6 +81,10 @@ def describe(cap: Capture, offset: bool = True) -> list[str]:
             f"clock overlap: {overlap:.3f} s of the camera's {(f1 - f0) * 1e-9:.3f} s; "
             f"IMU starts {(f0 - i0) * 1e-6:.3f} ms before the first frame"
         )
+    if cap.stills is not None:
+        st, c = cap.stills, cap.stills.camera
+        rate = f"{1e9 / np.median(np.diff(st.t_ns)):.2f} Hz" if len(st) > 1 else "one image"
+        lines.append(f"stills: {len(st)} images {c.width}x{c.height}, {rate}, fx {c.fx:.1f} px; span {_span(st.t_ns)}")
     if cap.ground_truth is not None:
         lines.append(f"ground truth: {len(cap.ground_truth)} poses, span {_span(cap.ground_truth.t_ns)}")
     if offset and cap.num_frames >= 10 and cap.imu is not None and cap.tracks is None:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tests.vio.sim.test_sim_render import _edge_offsets
+from vio.info import describe
 from vio.readers import open_capture
 from vio.sim import rig
 from vio.sim.api import load_scenario, simulate
@@ -112,6 +113,7 @@ def test_capture_carries_watertight_cad_and_stills(tmp_path):
     assert cap.stills.t_ns[0] == cap.frame_t_ns[0] + rig.STILLS_OFFSET_NS
     assert cap.stills.load_image(1).shape == STILLS_TEST_SIZE[::-1]
     assert np.allclose(cap.stills.camera.body_T_cam, cap.camera.body_T_cam)
+    assert any(line.startswith("stills: 2 images 1008x756") for line in describe(cap, offset=False))  # vio info
 
 
 def test_cube_cad_is_the_cube():
