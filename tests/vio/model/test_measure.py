@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from vio.errors import ModelError
-from vio.model.measure import Dimension, inspection_report, measure, report_dict
+from vio.model.measure import measure
+from vio.model.measure_report import Dimension, inspection_report, report_dict
 from vio.model.primitives import sample_surface
 from vio.sim.parts import build_part
 
