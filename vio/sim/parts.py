@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vio.atomic import write_bytes
 from vio.errors import PartError
+from vio.writers import mesh as mesh_writer
 
 PART_NAMES = ("cube", "cube_features", "freeform")
 UNITS_TO_MM = {"mm": 1.0, "m": 1000.0}
@@ -28,7 +28,6 @@ _DESCRIPTIONS = {
     ),
     "freeform": "90 x 70 mm block with a smooth wave-and-saddle top and a step with a 6 mm concave fillet",
 }
-_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,21 +100,10 @@ def _part(name: str, vertices: np.ndarray, faces: np.ndarray, description: str, 
     return Part(name, vertices, faces, description, dims)
 
 
-def stl_bytes(vertices: np.ndarray, faces: np.ndarray, header: str) -> bytes:
-    """Binary STL (little-endian float32) of an indexed mesh; each facet normal from its counter-clockwise winding."""
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
-    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
-    records = np.zeros(len(tri), dtype=_STL_RECORD)
-    records["normal"], records["vertices"] = normal, tri
-    head = header.encode("ascii", errors="replace")[:80].ljust(80, b" ")
-    return head + np.uint32(len(tri)).tobytes() + records.tobytes()
-
-
 def write_stl(path: str | os.PathLike[str], vertices: np.ndarray, faces: np.ndarray, header: str) -> None:
-    """Write a binary STL atomically (temporary file, then rename); the same mesh gives the same bytes."""
-    write_bytes(path, stl_bytes(vertices, faces, header))
+    """Write a binary STL atomically (`vio.writers.mesh.write_stl`, the project's one STL writer); the same mesh gives
+    the same bytes."""
+    mesh_writer.write_stl(path, vertices, faces, header)
 
 
 def read_stl_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,164 @@
+"""Depth fusion and the watertight mesh from ground-truth depth maps of the simulated orbit around the cube
+(ray-cast through the ideal pinhole grid, plus noise, outliers and holes), and the mesh and point-cloud writers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from vio.errors import ModelError
+from vio.model.fuse import FusedVolume, fuse_depth_maps, fused_points
+from vio.model.isolate import region_of_interest, support_plane
+from vio.model.mesh import mesh_checks, mesh_from_volume, to_support
+from vio.model.records import DepthMap, Mesh, Roi, View
+from vio.writers.mesh import write_mesh_ply, write_points_ply, write_stl
+
+VOXEL_M = 8e-4  # coarse for speed; the default is 0.4 mm
+SIDE_M = 0.0762
+PART_BGR = (0, 0, 255)  # the part's pixels in the test images (red), the rest grey
+
+
+def ground_truth_views(n_views: int, size=(640, 480), noise_m=1e-4, outliers=0.02, holes=0.03, seed=1):
+    """(scenario, views, depth maps) of n_views stills spread over the 60 s orbit: z-depth by ray casting the
+    ideal pinhole grid K^-1 [u, v, 1], with Gaussian noise, a fraction of outliers (x 0.8-1.2) and of holes."""
+    from vio.sim.api import load_scenario
+    from vio.sim.render import Renderer, camera_poses
+
+    sc = load_scenario("orbit", seed, 60.0, part="cube", stills_hz=2.0, stills_size=size)
+    cam = sc.stills_camera
+    times = sc.stills_times_ns()
+    times = times[np.linspace(0, len(times) - 1, n_views).round().astype(int)]
+    K = cam.K
+    renderer = Renderer(sc.scene, cam)
+    x = ((np.arange(cam.width) - K[0, 2]) / K[0, 0]).astype(np.float32)[None, :].repeat(cam.height, 0)
+    y = ((np.arange(cam.height) - K[1, 2]) / K[1, 1]).astype(np.float32)[:, None].repeat(cam.width, 1)
+    rng = np.random.default_rng(seed)
+    views, maps = [], []
+    for i, T in enumerate(camera_poses(sc, times, cam)):
+        d = [(T[k, 0] * x + T[k, 1] * y + np.float32(T[k, 2])).astype(np.float32) for k in range(3)]
+        t, _, prim = renderer.trace(T[:3, 3].astype(np.float32), d)
+        z = t + rng.normal(0.0, noise_m, t.shape).astype(np.float32)
+        bad = rng.random(z.shape) < outliers
+        z[bad] *= rng.uniform(0.8, 1.2, bad.sum()).astype(np.float32)
+        z[rng.random(z.shape) < holes] = np.nan
+        image = np.full((cam.height, cam.width, 3), 128, np.uint8)
+        image[prim >= 0] = PART_BGR
+        views.append(View(str(times[i]), image, K.copy(), T.copy(), int(times[i])))
+        maps.append(DepthMap(i, z))
+    return sc, views, maps
+
+
+def depth_points(views, maps, step: int = 4) -> np.ndarray:
+    """World points (N, 3) m of every step-th pixel of the depth maps."""
+    out = []
+    for dm in maps:
+        view = views[dm.view]
+        z = dm.depth_m[::step, ::step]
+        v, u = np.mgrid[0 : dm.depth_m.shape[0] : step, 0 : dm.depth_m.shape[1] : step]
+        K = view.K
+        p = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1).reshape(-1, 3)
+        out.append(p @ view.world_T_cam[:3, :3].T + view.world_T_cam[:3, 3])
+    p = np.concatenate(out)
+    return p[np.isfinite(p).all(axis=1)]
+
+
+@pytest.fixture(scope="module")
+def model():
+    sc, views, maps = ground_truth_views(16)
+    points = depth_points(views, maps)
+    up = np.mean([v.world_T_cam[:3, 3] for v in views], axis=0) - points.mean(axis=0)
+    plane = support_plane(points, up, np.random.default_rng(0))
+    roi = region_of_interest(plane, views, points)
+    volume = fuse_depth_maps(views, maps, roi, voxel_m=VOXEL_M)
+    mesh = mesh_from_volume(volume)
+    cad = trimesh.Trimesh(sc.scene.part.vertices_world(), sc.scene.part.part.faces)
+    return views, maps, volume, mesh, cad
+
+
+def test_mesh_is_watertight_and_manifold(model):
+    checks = mesh_checks(model[3])
+    assert checks["watertight"] and checks["winding_consistent"]
+    assert checks["non_manifold_edges"] == 0 and checks["boundary_edges"] == 0
+    assert checks["pieces"] == 1
+
+
+def test_mesh_matches_the_cad(model):
+    _, _, _, mesh, cad = model
+    volume = mesh_checks(mesh)["volume_m3"]
+    assert volume == pytest.approx(SIDE_M**3, rel=0.01)
+    _, dist, _ = trimesh.proximity.closest_point(cad, mesh.vertices)
+    assert dist.max() < 2 * VOXEL_M
+    assert np.sqrt(np.mean(dist**2)) < 0.25 * VOXEL_M
+
+
+def test_bottom_is_closed_on_the_plane(model):
+    _, _, volume, mesh, _ = model
+    base = to_support(mesh, volume.roi.world_T_support)
+    assert base.frame == "support"
+    tri = base.vertices[base.faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(normal, axis=1)
+    down = normal[:, 2] < -0.99 * 2 * area
+    assert np.abs(tri[down][:, :, 2]).max() < 0.5 * VOXEL_M  # the bottom lies on the plane
+    assert area[down].sum() == pytest.approx(SIDE_M**2, rel=0.03)
+    assert base.vertices[:, 2].min() > -0.5 * VOXEL_M
+    extent = np.percentile(base.vertices, 99.5, axis=0) - np.percentile(base.vertices, 0.5, axis=0)
+    np.testing.assert_allclose(extent, SIDE_M, atol=VOXEL_M)  # x, y along the cube's sides
+
+
+def test_fused_points_lie_on_the_part_with_its_colour(model):
+    views, maps, volume, _, cad = model
+    points, colours = fused_points(views, maps, volume, max_points=20000)
+    assert 10000 < len(points) <= 20000 and colours.shape == (len(points), 3) and colours.dtype == np.uint8
+    _, dist, _ = trimesh.proximity.closest_point(cad, points[::10])
+    assert np.percentile(dist, 99) < 2 * VOXEL_M
+    assert (colours == PART_BGR[::-1]).all(axis=1).mean() > 0.95  # RGB of the part's pixels
+
+
+def test_empty_volume_is_one_line_error(model):
+    volume = model[2]
+    empty = FusedVolume(np.ones((4, 4, 4), np.float32), volume.origin, volume.voxel_m, volume.trunc_m, volume.roi)
+    with pytest.raises(ModelError, match="no part surface"):
+        mesh_from_volume(empty)
+    with pytest.raises(ModelError, match="no depth maps"):
+        fuse_depth_maps([], [], Roi(np.eye(4), np.zeros(3), np.ones(3)))
+
+
+def test_mesh_checks_find_holes():
+    box = trimesh.creation.box((0.01, 0.02, 0.03))
+    checks = mesh_checks(Mesh(np.array(box.vertices), np.array(box.faces)))
+    assert checks["watertight"] and checks["volume_m3"] == pytest.approx(6e-6)
+    opened = mesh_checks(Mesh(np.array(box.vertices), np.array(box.faces[1:])))
+    assert not opened["watertight"] and opened["boundary_edges"] == 3 and opened["non_manifold_edges"] == 0
+
+
+def test_stl_in_millimetres_round_trips(tmp_path, model):
+    from vio.sim.parts import read_stl_mesh
+
+    mesh = model[3]
+    write_stl(tmp_path / "part.stl", mesh.vertices, mesh.faces, "vio test part, mm", scale=1000.0)
+    data = (tmp_path / "part.stl").read_bytes()
+    assert data[:17] == b"vio test part, mm" and len(data) == 84 + 50 * len(mesh.faces)
+    record = np.dtype([("normal", "<f4", (3,)), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
+    tri = np.frombuffer(data, record, offset=84)["vertices"]
+    np.testing.assert_allclose(tri, mesh.vertices[mesh.faces] * 1000.0, rtol=1e-6, atol=1e-4)
+    vertices, faces = read_stl_mesh(tmp_path / "part.stl")  # closed, consistently wound
+    volume = mesh_checks(Mesh(vertices, faces))["volume_m3"]
+    assert volume == pytest.approx(mesh_checks(mesh)["volume_m3"] * 1e9, rel=1e-5)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_carries_colours_and_faces(tmp_path, binary):
+    box = trimesh.creation.box((0.01, 0.02, 0.03))
+    colours = np.random.default_rng(0).integers(0, 256, (len(box.vertices), 3)).astype(np.uint8)
+    write_mesh_ply(tmp_path / "m.ply", box.vertices, box.faces, colours, binary=binary, comment="vio test")
+    back = trimesh.load(tmp_path / "m.ply", process=False)
+    np.testing.assert_allclose(back.vertices, box.vertices)
+    np.testing.assert_array_equal(back.faces, box.faces)
+    np.testing.assert_array_equal(back.visual.vertex_colors[:, :3], colours)
+    write_points_ply(tmp_path / "p.ply", box.vertices, colours, binary=binary)
+    cloud = trimesh.load(tmp_path / "p.ply", process=False)
+    assert isinstance(cloud, trimesh.PointCloud)
+    np.testing.assert_allclose(cloud.vertices, box.vertices)
+    np.testing.assert_array_equal(cloud.colors[:, :3], colours)

@@ -1,0 +1,143 @@
+"""Support plane (RANSAC) and region of interest on synthetic points: a cube standing on a tilted table top,
+clutter beside it and above it, and cameras on a ring looking at it. Nothing assumes the table at z = 0."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vio.errors import ModelError
+from vio.model.isolate import look_at_point, region_of_interest, support_plane
+from vio.model.records import SupportPlane, View
+
+NORMAL = np.array([0.08, -0.15, 1.0]) / np.linalg.norm([0.08, -0.15, 1.0])
+OFFSET_M = 0.05
+SIDE_M = 0.0762
+
+
+def _plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.cross(n, [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    return a, np.cross(n, a)
+
+
+def _on_plane(uv: np.ndarray, lift: np.ndarray | float = 0.0) -> np.ndarray:
+    """World points at plane coordinates uv (N, 2) m, `lift` m above the plane."""
+    a, b = _plane_axes(NORMAL)
+    return OFFSET_M * NORMAL + uv[:, :1] * a + uv[:, 1:] * b + np.reshape(lift, (-1, 1)) * NORMAL
+
+
+def _box_surface(rng, centre_uv, size, yaw, n) -> np.ndarray:
+    """Points on the five visible faces of a box (size (3,) m) standing on the plane, turned by yaw about it."""
+    p = rng.uniform(-0.5, 0.5, (n, 3)) * size
+    face = rng.integers(0, 5, n)  # 0..3 the sides, 4 the top
+    axis, sign = np.where(face < 4, face % 2, 2), np.where(face < 4, np.where(face < 2, -1, 1), 1)
+    p[np.arange(n), axis] = sign * 0.5 * size[axis]
+    c, s = np.cos(yaw), np.sin(yaw)
+    uv = p[:, :2] @ np.array([[c, s], [-s, c]]) + centre_uv
+    return _on_plane(uv, p[:, 2] + 0.5 * size[2])
+
+
+def _ring_views(target: np.ndarray, n: int = 8, radius: float = 0.5, elevation_deg: float = 35.0) -> list[View]:
+    a, b = _plane_axes(NORMAL)
+    views = []
+    for k in range(n):
+        az = 2 * np.pi * k / n
+        e = np.radians(elevation_deg)
+        centre = target + radius * (np.cos(e) * (np.cos(az) * a + np.sin(az) * b) + np.sin(e) * NORMAL)
+        z = (target - centre) / np.linalg.norm(target - centre)
+        x = np.cross(z, NORMAL)
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = centre
+        views.append(View(str(k), np.zeros((48, 64), np.uint8), np.diag([50.0, 50.0, 1.0]), T))
+    return views
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(7)
+    table = _on_plane(rng.uniform(-0.4, 0.4, (30000, 2))) + rng.normal(0, 1e-4, (30000, 1)) * NORMAL
+    part = _box_surface(rng, np.array([0.02, -0.01]), np.full(3, SIDE_M), 0.5, 20000)
+    clutter = _box_surface(rng, np.array([0.25, 0.1]), np.array([0.04, 0.03, 0.05]), 0.0, 3000)
+    floating = _on_plane(rng.uniform(-0.3, 0.3, (500, 2)), rng.uniform(0.2, 0.3, 500))
+    points = np.concatenate([table, part, clutter, floating])
+    views = _ring_views(_on_plane(np.array([[0.02, -0.01]]), 0.5 * SIDE_M)[0])
+    return points, part, clutter, floating, views
+
+
+def test_support_plane_ransac_with_40_percent_outliers():
+    rng = np.random.default_rng(3)
+    n = 20000
+    points = _on_plane(rng.uniform(-0.3, 0.3, (n, 2))) + rng.normal(0, 1e-4, (n, 1)) * NORMAL
+    out = rng.random(n) < 0.4
+    points[out] = rng.uniform(-0.3, 0.3, (out.sum(), 3))
+    plane = support_plane(points, np.array([0.0, 0.0, 1.0]), np.random.default_rng(0))
+    assert np.degrees(np.arccos(min(1.0, plane.normal @ NORMAL))) < 0.1
+    assert abs(plane.d_m - OFFSET_M) < 1e-4
+    assert 0.5e-4 < plane.inlier_rms_m < 2e-4
+    flipped = support_plane(points, np.array([0.0, 0.0, -1.0]), np.random.default_rng(0))
+    assert flipped.normal @ NORMAL < -0.999  # oriented towards the hint
+    assert flipped.d_m == pytest.approx(-plane.d_m, abs=1e-6)
+
+
+def test_support_plane_missing_is_one_line_error():
+    rng = np.random.default_rng(4)
+    with pytest.raises(ModelError, match="no support plane"):
+        support_plane(rng.uniform(-0.3, 0.3, (5000, 3)), np.array([0.0, 0.0, 1.0]), rng)
+    with pytest.raises(ModelError, match="no support plane"):
+        support_plane(np.zeros((10, 3)), np.array([0.0, 0.0, 1.0]), rng)
+
+
+def test_look_at_point_is_where_the_axes_meet(scene):
+    views = scene[4]
+    target = _on_plane(np.array([[0.02, -0.01]]), 0.5 * SIDE_M)[0]
+    np.testing.assert_allclose(look_at_point(views), target, atol=1e-9)
+
+
+def test_roi_contains_the_part_and_excludes_clutter(scene):
+    points, part, clutter, floating, views = scene
+    plane = support_plane(points, np.array([0.0, 0.0, 1.0]), np.random.default_rng(0))
+    roi = region_of_interest(plane, views, points, margin_m=0.01)
+    T = roi.world_T_support
+    np.testing.assert_allclose(T[:3, 2], plane.normal, atol=1e-12)
+    assert abs(plane.height(T[:3, 3])[()]) < 1e-9  # origin on the plane
+
+    def local(p):
+        return (p - T[:3, 3]) @ T[:3, :3]
+
+    def inside(p):
+        q = local(p)
+        return ((q >= roi.lo) & (q <= roi.hi)).all(axis=1)
+
+    assert inside(part).all()
+    assert not inside(clutter).any()
+    assert not inside(floating).any()
+    # x, y along the cube's sides: the box is the cube plus the margin, not its 45 deg hull
+    size = roi.hi - roi.lo
+    np.testing.assert_allclose(size[:2], SIDE_M + 0.02, atol=1.5e-3)
+    assert roi.lo[2] == pytest.approx(-0.01)
+    assert roi.hi[2] == pytest.approx(SIDE_M + 0.01, abs=1e-3)
+
+
+def test_roi_user_box_overrides_the_cluster(scene):
+    points, _, clutter, _, views = scene
+    plane = support_plane(points, np.array([0.0, 0.0, 1.0]), np.random.default_rng(0))
+    box = np.array(clutter.min(axis=0)), np.array(clutter.max(axis=0))
+    roi = region_of_interest(plane, views, points, user_box=np.array(box))
+    q = (clutter - roi.world_T_support[:3, 3]) @ roi.world_T_support[:3, :3]
+    assert ((q >= roi.lo - 1e-9) & (q <= roi.hi + 1e-9)).all()
+    no_plane = region_of_interest(None, views, points, user_box=np.array(box))
+    np.testing.assert_allclose(no_plane.world_T_support[:3, :3], np.eye(3))
+    assert no_plane.lo[2] == pytest.approx(0.0) and no_plane.hi[2] == pytest.approx(box[1][2] - box[0][2])
+
+
+def test_roi_without_a_part_or_plane_is_one_line_error(scene):
+    points, _, _, _, views = scene
+    plane = SupportPlane(NORMAL, OFFSET_M, 1e-4)
+    table_only = points[np.abs(plane.height(points)) < 5e-4]
+    with pytest.raises(ModelError, match="no part found"):
+        region_of_interest(plane, views, table_only)
+    with pytest.raises(ModelError, match="no support plane"):
+        region_of_interest(None, views, points)

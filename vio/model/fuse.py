@@ -1,0 +1,298 @@
+"""Fuse depth maps into a truncated signed distance field over the region of interest, with free-space carving.
+
+The grid is axis-aligned in the support frame (`Roi.world_T_support`: z up from the plane), voxel centres at
+`origin + index * voxel_m`, with the plane on a voxel boundary. Each voxel is projected into every view (nearest
+pixel). Within the truncation distance of the depth it takes the projective signed distance (depth - voxel z-depth,
+weighted by the depth map's confidence and the cosine of the viewing angle); in front of the depth by more than the
+truncation it gets a free-space vote. The field is then: the weighted average (free votes count as +1) where a
+surface was observed near it; outside where `min_free_views` views saw through it; inside where fewer did (occluded
+from the cameras); outside below the support plane, so the part's base closes on the plane (the table seen around
+the part is a surface just below the voxels above it, hence outside). Two passes: a coarse grid finds the band
+around the surface and the occupancy elsewhere, then the band alone is fused at `voxel_m`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from vio.errors import ModelError
+from vio.model.records import DepthMap, Roi, View
+
+log = logging.getLogger(__name__)
+
+_CHUNK = 1 << 20  # voxels integrated per block (bounds the temporaries at ~40 MB)
+_MIN_COS = np.float32(0.05)  # floor of the viewing-angle weight: grazing views still count a little
+_DIFF = np.array([[-0.5, 0.0, 0.5]], np.float32)  # central difference
+
+
+@dataclass(frozen=True)
+class FusedVolume:
+    """The fused field on a grid in the support frame. > 0 outside the part, < 0 inside, |value| <= 1."""
+
+    tsdf: np.ndarray  # (nx, ny, nz) float32: signed distance / trunc_m, clipped to [-1, 1]
+    origin: np.ndarray  # (3,) centre of voxel (0, 0, 0) in the support frame, m
+    voxel_m: float  # voxel edge, m
+    trunc_m: float  # truncation distance, m
+    roi: Roi  # the region fused; roi.world_T_support maps the grid's frame to world
+
+    def support_points(self, ijk: np.ndarray) -> np.ndarray:
+        """(N, 3) support-frame positions (m) of (fractional) grid indices (N, 3)."""
+        return self.origin + np.asarray(ijk, dtype=np.float64) * self.voxel_m
+
+
+@dataclass
+class _Accumulator:
+    """Per-voxel sums: weighted signed distance / truncation and its weight near a surface, free-space weight and
+    votes."""
+
+    sdf: np.ndarray
+    weight: np.ndarray
+    free_weight: np.ndarray
+    free: np.ndarray
+
+    @classmethod
+    def zeros(cls, n: int) -> _Accumulator:
+        return cls(*(np.zeros(n, np.float32) for _ in range(3)), np.zeros(n, np.uint16))
+
+    def field(self, min_free_views: int) -> np.ndarray:
+        """Signed field in [-1, 1]: where a surface was seen near the voxel, the weighted average of its signed
+        distances and its free votes (+1 each); elsewhere +1 if `min_free_views` views saw through it, else -1."""
+        out = np.where(self.free >= min_free_views, np.float32(1.0), np.float32(-1.0))
+        near = self.weight > 0
+        w_free = self.free_weight[near]
+        out[near] = (self.sdf[near] + w_free) / (self.weight[near] + w_free)
+        return out
+
+
+def despeckle(depth_m: np.ndarray, speckle_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth, valid, median): a float32 copy of a depth image (m) with unknown pixels and isolated outliers (more
+    than `speckle_m` from the 3x3 median) set to NaN, the mask of the others, and the 3x3 median itself."""
+    d = np.array(depth_m, dtype=np.float32)
+    valid = np.isfinite(d) & (d > 0)
+    d[~valid] = 0.0
+    med = cv2.medianBlur(d, 3)
+    valid &= np.abs(d - med) <= speckle_m
+    d[~valid] = np.nan
+    return d, valid, med
+
+
+def prepare_depth(
+    view: View, depth: DepthMap, speckle_m: float, step: int = 1, window: tuple[slice, slice] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth m, weight, K) of one view, every `step`-th pixel of the (rows, columns) `window` (K (3, 3) px of that
+    grid): isolated outliers (farther than `speckle_m` from the 3x3 median) become NaN; weight = confidence x |cos|
+    (at least 0.05) of the angle between the ray and the surface normal from the depth gradient.
+
+    With a = fx dz/du, b = fy dz/dv and the ray r = (x, y, 1), the normal is (-a, -b, a x + b y + z) and
+    cos = z / (|n| |r|)."""
+    rows, cols = window or (slice(None), slice(None))
+    rows, cols = slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)
+    d, valid, med = despeckle(depth.depth_m[rows, cols], speckle_m)
+    h, w = d.shape
+    filled = np.where(valid, d, med)  # normals next to holes from the local median
+    shift = np.array([[1.0, 0.0, -(cols.start or 0)], [0.0, 1.0, -(rows.start or 0)], [0.0, 0.0, 1.0]])
+    K = np.diag([1.0 / step, 1.0 / step, 1.0]) @ shift @ view.K
+    x = ((np.arange(w) - K[0, 2]) / K[0, 0]).astype(np.float32)[None, :]
+    y = ((np.arange(h) - K[1, 2]) / K[1, 1]).astype(np.float32)[:, None]
+    a = cv2.filter2D(filled, -1, _DIFF * np.float32(K[0, 0]), borderType=cv2.BORDER_REPLICATE)
+    b = cv2.filter2D(filled, -1, _DIFF.T * np.float32(K[1, 1]), borderType=cv2.BORDER_REPLICATE)
+    nz = a * x
+    nz += b * y
+    nz += filled
+    norm2 = a * a
+    norm2 += b * b
+    norm2 += nz * nz
+    norm2 *= x * x + y * y + np.float32(1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        weight = filled / np.sqrt(norm2)
+    weight = np.where(valid, np.maximum(weight, _MIN_COS), np.float32(0.0))
+    if depth.confidence is not None:
+        weight *= np.clip(depth.confidence[rows, cols], 0.0, 1.0)
+    return d, weight.astype(np.float32), K
+
+
+def _integrate(
+    acc: _Accumulator,
+    centres: np.ndarray,
+    images: tuple[np.ndarray, np.ndarray, np.ndarray],
+    cam_T_support: np.ndarray,
+    trunc_m: float,
+) -> None:
+    """Add one view's observations (`prepare_depth`) of voxel centres (3, N) float32, support frame, to `acc`."""
+    d, weight, K = images
+    h, w = d.shape
+    R = cam_T_support[:3, :3].astype(np.float32)
+    t = cam_T_support[:3, 3].astype(np.float32)
+    fx, fy, cx, cy = (np.float32(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    flat_d, flat_w = d.ravel(), weight.ravel()
+    inv_trunc = np.float32(1.0 / trunc_m)
+    zero = np.float32(0.0)
+    for s in range(0, centres.shape[1], _CHUNK):
+        c = centres[:, s : s + _CHUNK]
+        x, y, z = (R[k, 0] * c[0] + R[k, 1] * c[1] + R[k, 2] * c[2] + t[k] for k in range(3))
+        inv = np.float32(1.0) / np.maximum(z, np.float32(1e-3))
+        u = np.rint(x * inv * fx + cx).astype(np.int32)
+        v = np.rint(y * inv * fy + cy).astype(np.int32)
+        ok = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        pix = np.where(ok, v * w + u, 0)
+        sdf = flat_d.take(pix) - z  # NaN where the depth is unknown: every comparison below is False
+        sdf[~ok] = np.nan
+        wt = flat_w.take(pix)
+        free = sdf > trunc_m
+        near = (np.abs(sdf) <= trunc_m) & (wt > 0)
+        sl = slice(s, s + c.shape[1])
+        acc.free[sl] += free
+        acc.free_weight[sl] += np.where(free, wt, zero)
+        acc.sdf[sl] += np.where(near, wt * sdf * inv_trunc, zero)
+        acc.weight[sl] += np.where(near, wt, zero)
+
+
+def fuse_depth_maps(
+    views: Sequence[View],
+    depth_maps: Sequence[DepthMap],
+    roi: Roi,
+    voxel_m: float = 4e-4,
+    trunc_voxels: float = 4.0,
+    min_free_views: int = 2,
+    coarse_factor: int = 4,
+) -> FusedVolume:
+    """Fuse depth maps (z-depth per pixel of `views[dm.view]`) into a FusedVolume over `roi` (voxel edge
+    `voxel_m` m, truncation `trunc_voxels` voxels). See the module docstring for the rule."""
+    if not depth_maps:
+        raise ModelError("no depth maps to fuse")
+    f = int(coarse_factor)
+    trunc_m = float(trunc_voxels * voxel_m)
+    cell = f * voxel_m
+    lo = np.array([roi.lo[0], roi.lo[1], -2.0 * voxel_m])
+    shape_c = np.maximum(np.ceil((np.array([roi.hi[0], roi.hi[1], roi.hi[2]]) - lo) / cell).astype(int), 1)
+    shape = shape_c * f
+    if np.prod(shape) > 2**31:
+        raise ModelError(f"fusion grid {shape.tolist()} is too large; use a larger voxel or a smaller region")
+    origin = lo + 0.5 * voxel_m
+    t0 = time.perf_counter()
+    prepared = []
+    corners = np.array([[(lo, shape * voxel_m + lo)[(i >> k) & 1][k] for k in range(3)] for i in range(8)])
+    coarse = _Accumulator.zeros(int(np.prod(shape_c)))
+    ijk_c = np.indices(shape_c, dtype=np.float32).reshape(3, -1).T
+    centres_c = np.ascontiguousarray((lo + (ijk_c + 0.5) * cell).T, dtype=np.float32)
+    trunc_c = max(trunc_m, 1.5 * cell)
+    for dm in depth_maps:
+        view = views[dm.view]
+        z_typ = np.nanmedian(dm.depth_m[::16, ::16]) if np.isfinite(dm.depth_m[::16, ::16]).any() else 1.0
+        step = max(1, int(view.K[0, 0] * cell / (2.0 * z_typ)))  # about 2 pixels per coarse cell
+        cam_T_support = np.linalg.inv(view.world_T_cam) @ roi.world_T_support
+        window = _window(corners, cam_T_support, view.K, dm.depth_m.shape)  # where the grid is seen
+        if window is None:
+            continue
+        images = prepare_depth(view, dm, trunc_m, step, window)
+        _integrate(coarse, centres_c, images, cam_T_support, trunc_c)
+        prepared.append((dm, view, cam_T_support, window))
+    if not prepared:
+        raise ModelError("no depth map sees the region of interest")
+    field_c = coarse.field(min_free_views).reshape(shape_c)
+    field_c[:, :, 0] = 1.0  # the lowest coarse layer holds the two voxels below the plane: outside
+    sign = field_c > 0
+    changes = ndimage.binary_dilation(sign, np.ones((3, 3, 3), bool)) & ~ndimage.binary_erosion(
+        sign, np.ones((3, 3, 3), bool), border_value=1
+    )
+    band = (np.abs(field_c) < 1.0) | changes
+    t1 = time.perf_counter()
+    cells = np.argwhere(band).astype(np.float32)
+    offsets = np.indices((f, f, f), dtype=np.float32).reshape(3, -1).T
+    fine_ijk = (cells[:, None, :] * f + offsets[None, :, :]).reshape(-1, 3)
+    centres = np.ascontiguousarray((origin + fine_ijk * voxel_m).T, dtype=np.float32)
+    fine = _Accumulator.zeros(centres.shape[1])
+    for dm, view, cam_T_support, window in prepared:
+        images = prepare_depth(view, dm, trunc_m, 1, window)
+        _integrate(fine, centres, images, cam_T_support, trunc_m)
+    tsdf = np.repeat(np.repeat(np.repeat(np.where(sign, 1.0, -1.0).astype(np.float32), f, 0), f, 1), f, 2)
+    ii = fine_ijk.astype(np.int64)
+    tsdf[ii[:, 0], ii[:, 1], ii[:, 2]] = fine.field(min_free_views)
+    tsdf[:, :, :2] = 1.0  # below the support plane
+    log.info(
+        "fused %d depth maps: grid %s at %.2f mm, band %d voxels (%.1f %%), coarse %.1f s, fine %.1f s",
+        len(depth_maps),
+        shape.tolist(),
+        1e3 * voxel_m,
+        centres.shape[1],
+        100.0 * centres.shape[1] / tsdf.size,
+        t1 - t0,
+        time.perf_counter() - t1,
+    )
+    return FusedVolume(tsdf, origin, float(voxel_m), trunc_m, roi)
+
+
+def _window(
+    corners: np.ndarray, cam_T_support: np.ndarray, K: np.ndarray, shape: tuple[int, ...]
+) -> tuple[slice, slice] | None:
+    """(rows, columns) of the image (shape (H, W)) where support-frame corners (8, 3) m project (the whole image
+    if one is behind the camera), or None when they project outside it (less than 3 x 3 pixels)."""
+    pc = corners @ cam_T_support[:3, :3].T + cam_T_support[:3, 3]
+    if (pc[:, 2] <= 1e-3).any():
+        return slice(0, shape[0]), slice(0, shape[1])
+    uv = pc[:, :2] / pc[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    c0, r0 = np.clip(np.floor(uv.min(axis=0)).astype(int), 0, [shape[1], shape[0]])
+    c1, r1 = np.clip(np.ceil(uv.max(axis=0)).astype(int) + 1, 0, [shape[1], shape[0]])
+    if r1 - r0 < 3 or c1 - c0 < 3:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
+def fused_points(
+    views: Sequence[View],
+    depth_maps: Sequence[DepthMap],
+    volume: FusedVolume,
+    tol_m: float | None = None,
+    max_points: int = 2_000_000,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The depth-map points that agree with the fused surface, for dense.ply: (points (N, 3) world m, colours
+    (N, 3) uint8 RGB from the views' images).
+
+    A point agrees when it lies inside the volume's box, at least one voxel above the support plane, and within
+    `tol_m` (default two voxels) of the surface (the field interpolated trilinearly). At most
+    `max_points / len(depth_maps)` points per view are kept (a random subset from `rng`, default seed 0)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    tol_m = 2.0 * volume.voxel_m if tol_m is None else float(tol_m)
+    quota = max(1, int(max_points) // max(len(depth_maps), 1))
+    support_T_world = np.linalg.inv(volume.roi.world_T_support)
+    upper = np.array(volume.tsdf.shape) - 1
+    out_p, out_c = [], []
+    corners = np.array([[(volume.roi.lo, volume.roi.hi)[(i >> k) & 1][k] for k in range(3)] for i in range(8)])
+    for dm in depth_maps:
+        view = views[dm.view]
+        K = view.K
+        window = _window(corners, np.linalg.inv(view.world_T_cam) @ volume.roi.world_T_support, K, dm.depth_m.shape)
+        if window is None:
+            continue
+        rows, cols = window
+        d = despeckle(dm.depth_m[rows, cols], volume.trunc_m)[0]
+        v, u = np.nonzero(np.isfinite(d))
+        if len(v) > 4 * quota:  # enough candidates to fill the quota after the agreement test
+            pick = np.sort(rng.choice(len(v), 4 * quota, replace=False))
+            v, u = v[pick], u[pick]
+        z = d[v, u].astype(np.float64)
+        v, u = v + rows.start, u + cols.start
+        p_cam = np.column_stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
+        T = support_T_world @ view.world_T_cam
+        p = p_cam @ T[:3, :3].T + T[:3, 3]
+        ijk = (p - volume.origin) / volume.voxel_m
+        ok = (ijk >= 0).all(axis=1) & (ijk <= upper).all(axis=1) & (p[:, 2] >= volume.voxel_m)
+        idx = np.nonzero(ok)[0]
+        value = ndimage.map_coordinates(volume.tsdf, ijk[idx].T, order=1, mode="nearest")
+        idx = idx[np.abs(value) * volume.trunc_m <= tol_m]
+        if len(idx) > quota:
+            idx = np.sort(rng.choice(idx, quota, replace=False))
+        image = view.image if view.image.ndim == 3 else view.image[:, :, None].repeat(3, axis=2)
+        out_c.append(image[v[idx], u[idx]][:, ::-1])  # BGR -> RGB
+        out_p.append(p[idx] @ volume.roi.world_T_support[:3, :3].T + volume.roi.world_T_support[:3, 3])
+    if not out_p:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return np.concatenate(out_p), np.ascontiguousarray(np.concatenate(out_c), dtype=np.uint8)

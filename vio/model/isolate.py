@@ -1,0 +1,230 @@
+"""Isolate the part: the support plane it stands on (RANSAC) and the region of interest around it.
+
+World is the run's world frame (metres). The support frame has its origin on the plane below the point the cameras
+look at, z along the plane's upward normal, and x, y along the sides of the part's footprint (minimum-area
+rectangle of the cluster of points above the plane), so a box-like part is axis-aligned in the fusion grid.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from vio.errors import ModelError
+from vio.model.records import Roi, SupportPlane, View
+
+log = logging.getLogger(__name__)
+
+_MIN_POINTS = 50  # fewer points than this cannot give a plane or a part
+
+
+def support_plane(
+    points_world: np.ndarray,
+    up_hint: np.ndarray,
+    rng: np.random.Generator,
+    threshold_m: float = 1e-3,
+    iterations: int = 1000,
+    max_tilt_deg: float = 45.0,
+    sample_size: int = 4000,
+) -> SupportPlane:
+    """The plane with the most points within `threshold_m` (RANSAC), refitted by least squares on its inliers.
+
+    points_world (N, 3) m; up_hint (3,) a direction roughly up (gravity's opposite, or the mean camera position
+    minus the points' centroid): planes tilted more than `max_tilt_deg` from it are not candidates, and the normal
+    returned points to its side. Hypotheses are scored on a random subset of `sample_size` points.
+    Raises ModelError when no plane has enough inliers.
+    """
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    up = np.asarray(up_hint, dtype=np.float64)
+    if len(pts) < _MIN_POINTS or not np.linalg.norm(up) > 0:
+        raise ModelError(f"no support plane: {len(pts)} points (need {_MIN_POINTS}) or no up direction")
+    up = up / np.linalg.norm(up)
+    sub = pts[rng.choice(len(pts), min(sample_size, len(pts)), replace=False)]
+    tri = sub[rng.integers(0, len(sub), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1)
+    ok = length > 1e-12
+    n = n[ok] / length[ok, None]
+    n *= np.sign(n @ up)[:, None] + (n @ up == 0)[:, None]
+    keep = n @ up >= np.cos(np.radians(max_tilt_deg))
+    n, d = n[keep], np.einsum("ij,ij->i", n[keep], tri[ok][keep, 0])
+    if len(n) == 0:
+        raise ModelError(f"no support plane within {max_tilt_deg:g} deg of the up direction")
+    best = 0
+    best_count = -1
+    for start in range(0, len(n), 256):  # (256, sample) distance blocks
+        counts = (np.abs(sub @ n[start : start + 256].T - d[start : start + 256]) < threshold_m).sum(axis=0)
+        if counts.max() > best_count:
+            best, best_count = start + int(counts.argmax()), int(counts.max())
+    normal, offset = n[best], d[best]
+    for _ in range(3):  # least-squares refit on the inliers of the current plane
+        inliers = pts[np.abs(pts @ normal - offset) < threshold_m]
+        if len(inliers) < 3:
+            break
+        centroid = inliers.mean(axis=0)
+        normal = np.linalg.svd(inliers - centroid, full_matrices=False)[2][2]
+        normal = normal if normal @ up >= 0 else -normal
+        offset = float(normal @ centroid)
+    resid = pts @ normal - offset
+    inl = np.abs(resid) < threshold_m
+    if inl.sum() < max(_MIN_POINTS, 0.02 * len(pts)):
+        raise ModelError(f"no support plane: the best plane has only {int(inl.sum())} of {len(pts)} points")
+    rms = float(np.sqrt(np.mean(resid[inl] ** 2)))
+    log.info(
+        "support plane: normal %s, d %.4f m, %d inliers, rms %.3f mm", normal.round(4), offset, inl.sum(), rms * 1e3
+    )
+    return SupportPlane(normal=normal, d_m=float(offset), inlier_rms_m=rms)
+
+
+def look_at_point(views: Sequence[View]) -> np.ndarray:
+    """(3,) world point closest (least squares) to all the views' optical axes, m."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for view in views:
+        axis, centre = view.world_T_cam[:3, 2], view.world_T_cam[:3, 3]
+        P = np.eye(3) - np.outer(axis, axis)
+        A += P
+        b += P @ centre
+    if len(views) == 0:
+        raise ModelError("no views to find where the cameras look")
+    return np.linalg.lstsq(A + 1e-9 * np.eye(3), b, rcond=None)[0]
+
+
+def _support_frame(plane: SupportPlane, origin_world: np.ndarray, x_dir: np.ndarray) -> np.ndarray:
+    """(4, 4) world_T_support: origin on the plane below origin_world, z the normal, x along x_dir in the plane."""
+    z = plane.normal
+    x = x_dir - (x_dir @ z) * z
+    if np.linalg.norm(x) < 1e-9:  # x_dir along the normal: any direction in the plane
+        x = np.eye(3)[int(np.argmin(np.abs(z)))] - z * z[int(np.argmin(np.abs(z)))]
+    x = x / np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = origin_world - plane.height(origin_world) * z
+    return T
+
+
+def _clusters(p: np.ndarray, cell_m: float, min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """26-connected clusters of occupied cells: (cell keys (C, 3) int, cell label (C,), point -> cell (N,))."""
+    ijk = np.floor(p / cell_m).astype(np.int64)
+    cells, inverse, counts = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    occupied = counts >= min_points
+    remap = np.full(len(cells), -1)
+    remap[occupied] = np.arange(occupied.sum())
+    cells = cells[occupied]
+    span = cells.max(axis=0) - cells.min(axis=0) + 3
+    lo = cells.min(axis=0) - 1
+
+    def key(c: np.ndarray) -> np.ndarray:
+        c = c - lo
+        return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+
+    keys = key(cells)
+    order = np.argsort(keys)
+    rows, cols = [], []
+    for off in np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3):
+        nk = key(cells + off)
+        pos = np.clip(np.searchsorted(keys, nk, sorter=order), 0, len(keys) - 1)
+        hit = keys[order[pos]] == nk
+        rows.append(np.nonzero(hit)[0])
+        cols.append(order[pos[hit]])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = sparse.coo_matrix((np.ones(len(r), bool), (r, c)), shape=(len(cells), len(cells)))
+    labels = connected_components(graph, directed=False)[1]
+    return cells, labels, remap[inverse]
+
+
+def _footprint_angle(local: np.ndarray, neighbours: int = 12) -> float:
+    """Angle (rad, in the plane of a support frame) of the footprint's sides from points (N, 3) in that frame.
+
+    The normals of the side faces (local PCA of `neighbours` points; steeper than 70 deg) vote for one of four
+    directions 90 deg apart (mean of exp(4i angle)); without a clear vote (a round part), the minimum-area
+    rectangle of the points decides."""
+    sub = local[:: max(1, len(local) // 20000)]
+    if len(sub) > neighbours:
+        nn = cKDTree(sub).query(sub, k=neighbours)[1]
+        nb = sub[nn] - sub[nn].mean(axis=1, keepdims=True)
+        values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+        n = vectors[:, :, 0]
+        side = (np.abs(n[:, 2]) < np.cos(np.radians(20.0))) & (values[:, 0] < 0.1 * values[:, 1])
+        vote = np.exp(4j * np.arctan2(n[side, 1], n[side, 0])).mean() if side.sum() >= 50 else 0.0
+        if abs(vote) > 0.5:
+            return float(np.angle(vote) / 4.0)
+    return float(np.radians(cv2.minAreaRect(local[:, :2].astype(np.float32))[2]))
+
+
+def region_of_interest(
+    plane: SupportPlane | None,
+    views: Sequence[View],
+    points_world: np.ndarray,
+    margin_m: float = 0.01,
+    user_box: np.ndarray | None = None,
+    min_height_m: float = 1e-3,
+    cell_m: float | None = None,
+    min_points: int = 3,
+) -> Roi:
+    """The box around the part in the support frame: the connected cluster of points above the plane nearest to
+    where the cameras look (`look_at_point`), its extent plus `margin_m` (below the plane too).
+
+    The cluster: points from `min_height_m` up, in cells of `cell_m` holding >= `min_points` points, 26-connected
+    (cell_m None: 2.5 times the median distance to the `min_points`-th neighbour among the 2000 points nearest to
+    the look-at point, at least 2 mm). `user_box` (2, 3) world min/max corners replaces the cluster (the support
+    frame then has x along the world x; without a plane, it has the world's axes and its origin at the centre of
+    the box's bottom). Raises ModelError when no part is found, or without both a plane and a user box.
+    """
+    if user_box is not None:
+        box = np.asarray(user_box, dtype=np.float64).reshape(2, 3)
+        if plane is None:
+            T = np.eye(4)
+            T[:3, 3] = [0.5 * (box[0, 0] + box[1, 0]), 0.5 * (box[0, 1] + box[1, 1]), box[:, 2].min()]
+        else:
+            T = _support_frame(plane, look_at_point(views), np.array([1.0, 0.0, 0.0]))
+        corners = np.array([[box[(i >> k) & 1, k] for k in range(3)] for i in range(8)])
+        local = (corners - T[:3, 3]) @ T[:3, :3]
+        return Roi(T, local.min(axis=0), local.max(axis=0))
+    if plane is None:
+        raise ModelError("no support plane and no --roi box: cannot isolate the part")
+    target = look_at_point(views)
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    above = pts[plane.height(pts) >= min_height_m]
+    if len(above) < _MIN_POINTS:
+        raise ModelError(f"no part found: only {len(above)} points stand {1e3 * min_height_m:g} mm above the plane")
+    if cell_m is None:  # cells that hold min_points points of the part's surface: 2.5 x the k-th neighbour distance
+        near_target = np.linalg.norm(above - target, axis=1)
+        probe = above[np.argpartition(near_target, min(2000, len(above) - 1))[:2000]]
+        knn = cKDTree(above).query(probe, k=min_points + 1)[0][:, -1]
+        cell_m = float(max(2.5 * np.median(knn), 2e-3))
+    cells, labels, point_cell = _clusters(above, cell_m, min_points)
+    if len(cells) == 0:
+        raise ModelError("no part found: the points above the plane are too sparse to form a cluster")
+    centres = (cells + 0.5) * cell_m
+    dist = np.linalg.norm(centres - target, axis=1)
+    label = labels[int(np.argmin(dist))]
+    member = labels[np.maximum(point_cell, 0)] == label
+    part = above[member & (point_cell >= 0)]
+    T0 = _support_frame(plane, target, np.array([1.0, 0.0, 0.0]))  # any in-plane x first
+    local0 = (part - T0[:3, 3]) @ T0[:3, :3]
+    a = _footprint_angle(local0)
+    xy = local0[:, :2] @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    if np.ptp(xy[:, 1]) > np.ptp(xy[:, 0]):  # x along the longer side
+        a += 0.5 * np.pi
+    T = _support_frame(plane, target, T0[:3, :3] @ np.array([np.cos(a), np.sin(a), 0.0]))
+    local = (part - T[:3, 3]) @ T[:3, :3]
+    lo, hi = local.min(axis=0) - margin_m, local.max(axis=0) + margin_m
+    lo[2] = -margin_m
+    log.info(
+        "region of interest: %d of %d points above the plane (cells %.1f mm), %.1f x %.1f x %.1f mm with margins",
+        len(part),
+        len(above),
+        1e3 * cell_m,
+        *(1e3 * (hi - lo)),
+    )
+    return Roi(T, lo, hi)
