@@ -1,0 +1,213 @@
+"""`vio compare`: register a model (ours, or one exported by other software) to its CAD, measure its signed
+deviations and its mesh quality, and write the report, so that models from different tools rank on the same page.
+
+Outputs in `out_dir`: `report.md` (with the pictures), `report.json`, `deviation.ply` (the model in the CAD frame,
+mm, coloured by deviation, with a `deviation_mm` scalar), `histogram.png`, `deviation.png`. Everything is computed
+before anything is written, each file is written atomically (temporary file, then rename), and `report.json` last.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from vio.atomic import ensure_dir, write_bytes, write_json, write_text
+from vio.errors import ModelError, PartError
+from vio.model import deviation as dev
+from vio.model.closest import build_index
+from vio.model.figures import deviation_png, histogram_png
+from vio.model.quality import mesh_quality
+from vio.model.register import register
+from vio.model.report_text import report_markdown
+
+log = logging.getLogger(__name__)
+
+UNITS_TO_MM = {"mm": 1.0, "m": 1000.0}
+_UNITS_RE = (
+    re.compile(r"\bunits?\s*[:=]?\s*(millimet(?:re|er)s?|met(?:re|er)s?|mm|m)\b", re.IGNORECASE),
+    re.compile(r",\s*(mm|m)\s*$"),  # vio's STL headers: "vio part cube: part frame, mm"
+)
+
+
+def compare(
+    model_path: str | os.PathLike[str],
+    cad_path: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    units: str | None = None,
+    *,
+    cad_units: str = "mm",
+    sampling: str = "surface",
+    samples: int = 200_000,
+    seed: int = 0,
+    max_rms_mm: float = 2.0,
+    min_overlap: float = 0.2,
+) -> dict:
+    """Compare a model (STL, PLY, OBJ, ... mesh, or a PLY point cloud) with its CAD (STL); returns report.json's dict.
+
+    units: the model file's length unit ("mm" | "m"); None reads it from the file's header when the file says
+    so, else infers it from its size next to the CAD's (a factor of 1000 cannot be mistaken). The CAD is in
+    `cad_units` and must be a closed mesh with outward normals. A mesh is measured at `samples` points uniform on
+    its faces (sampling="surface") or at its vertices ("vertices"). Raises ModelError (one line) for a CAD that is
+    not a valid STL, a model without points or with an STL without faces, and a model that does not overlap the
+    CAD after registration (trimmed RMS above `max_rms_mm`, or under `min_overlap` of it within 2 mm of the CAD).
+    """
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if (units is not None and units not in UNITS_TO_MM) or cad_units not in UNITS_TO_MM:
+        raise ModelError(f"unknown units {units!r}; use one of {', '.join(UNITS_TO_MM)}")
+    cad = _load_cad(cad_path, cad_units)
+    model, file_units = _load_model(model_path)
+    units, units_source = _resolve_units(model, cad, units, file_units, model_path)
+    model.apply_scale(UNITS_TO_MM[units])
+    rng = np.random.default_rng(seed)
+    points = dev.model_points(model, sampling, samples, rng)
+    is_mesh = isinstance(model, trimesh.Trimesh)
+    timings["load_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    cad_index = build_index(cad.vertices, cad.faces)
+    reg = register(points, cad, index=cad_index, rng=rng)
+    timings["register_s"] = time.perf_counter() - t0
+    model.apply_transform(reg.cad_T_model)
+    points = points @ reg.cad_T_model[:3, :3].T + reg.cad_T_model[:3, 3]
+
+    t0 = time.perf_counter()
+    signed = dev.signed_deviations(points, cad_index)
+    stats = dev.deviation_stats(signed)
+    if reg.rms_mm > max_rms_mm or stats.within_overlap < min_overlap:
+        raise ModelError(
+            f"{model_path}: the model does not overlap the CAD {cad_path} after registration (RMS {reg.rms_mm:.2f} mm, "
+            f"{100 * stats.within_overlap:.0f} % of it within {dev.OVERLAP_MM:g} mm); wrong part, or wrong --units?"
+        )
+    vertex_signed = dev.signed_deviations(model.vertices, cad_index) if is_mesh else signed
+    complete = dev.completeness(cad, model, rng=rng)
+    timings["deviation_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    quality = mesh_quality(model.vertices, model.faces).as_dict() if is_mesh else None
+    timings["quality_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    limit = dev.colour_limit(stats)
+    name = Path(model_path).name
+    files = {
+        "histogram.png": histogram_png(signed, stats, limit, f"{name} vs {Path(cad_path).name}"),
+        "deviation.png": deviation_png(points, signed, limit, f"{name}: signed deviation from the CAD"),
+        "deviation.ply": dev.ply_bytes(
+            model.vertices,
+            vertex_signed,
+            dev.deviation_colours(vertex_signed, limit),
+            model.faces if is_mesh else None,
+            f"vio compare: {name} in the CAD frame, mm; colours RdBu_r saturated at +-{limit:g} mm",
+        ),
+    }
+    timings["figures_s"] = time.perf_counter() - t0
+    report = {
+        "model": str(model_path),
+        "cad": str(cad_path),
+        "units": units,
+        "units_source": units_source,
+        "kind": "mesh" if is_mesh else "point cloud",
+        "measured_at": sampling if is_mesh else "points",
+        "registration": {
+            "cad_T_model": np.round(reg.cad_T_model, 6).tolist(),
+            "rms_mm": round(reg.rms_mm, 5),
+            "inlier_fraction": round(reg.inlier_fraction, 4),
+            "iterations": reg.iterations,
+            "candidate": reg.candidate,
+            "num_candidates": reg.num_candidates,
+            "coarse_rms_mm": round(reg.coarse_rms_mm, 4),
+        },
+        "deviation": stats.as_dict(),
+        "completeness": round(complete, 4),
+        "completeness_mm": dev.COMPLETENESS_MM,
+        "colour_limits_mm": [-limit, limit],
+        "quality": quality,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "files": sorted([*files, "report.md", "report.json"]),
+    }
+    out = ensure_dir(out_dir)
+    for file_name, data in files.items():
+        write_bytes(out / file_name, data)
+    write_text(out / "report.md", report_markdown(report))
+    write_json(out / "report.json", report)
+    log.info("compared %s with %s: window %+.3f/%+.3f mm", name, cad_path, stats.max_positive_mm, stats.max_negative_mm)
+    return report
+
+
+def _load_cad(path: str | os.PathLike[str], units: str) -> trimesh.Trimesh:
+    """The CAD as a closed, outward-wound mesh in mm (its own frame)."""
+    from vio.sim.parts import read_stl_mesh
+
+    try:
+        vertices, faces = read_stl_mesh(path)
+    except PartError as exc:
+        raise ModelError(f"CAD: {exc}") from None
+    return trimesh.Trimesh(vertices * UNITS_TO_MM[units], faces, process=False)
+
+
+def _load_model(path: str | os.PathLike[str]) -> tuple[trimesh.Trimesh | trimesh.PointCloud, str | None]:
+    """(the model as a mesh or a point cloud in the file's units and frame, the units its header states or None)."""
+    path = Path(path)
+    try:
+        head = path.read_bytes()[:4096]
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read the model ({exc.strerror or exc})") from None
+    kind = path.suffix.lower().lstrip(".")
+    try:
+        loaded = trimesh.load(str(path), file_type=kind or None, process=True)
+    except Exception as exc:  # trimesh raises many kinds on malformed files
+        raise ModelError(f"{path}: not a readable mesh or point cloud ({type(exc).__name__}: {exc})") from None
+    if isinstance(loaded, trimesh.Scene):  # several bodies, or nothing at all
+        meshes = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+        clouds = [g.vertices for g in loaded.geometry.values() if isinstance(g, trimesh.PointCloud)]
+        if meshes:
+            loaded = trimesh.util.concatenate(meshes)
+        elif clouds:
+            loaded = trimesh.PointCloud(np.vstack(clouds))
+        else:
+            loaded = trimesh.PointCloud(np.zeros((0, 3)))
+    if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) == 0 or len(loaded.vertices) == 0:
+        if kind in ("stl", "obj", "off") or len(loaded.vertices) == 0:
+            raise ModelError(f"{path}: the {'mesh has no faces' if kind != 'ply' else 'file holds no points'}")
+        loaded = trimesh.PointCloud(loaded.vertices)
+    if not np.isfinite(loaded.vertices).all():
+        raise ModelError(f"{path}: the model has non-finite coordinates")
+    return loaded, _header_units(head, kind)
+
+
+def _header_units(head: bytes, kind: str) -> str | None:
+    """The length unit a file's header states ("mm" | "m"), or None."""
+    if kind == "stl":
+        text = head[:80] if not head.lstrip()[:5].lower() == b"solid" else head.split(b"\n", 1)[0]
+    elif kind == "ply":
+        text = b"\n".join(line for line in head.split(b"end_header")[0].split(b"\n") if line.startswith(b"comment"))
+    else:
+        text = b"\n".join(line for line in head.split(b"\n")[:50] if line.startswith(b"#"))
+    for line in text.decode("latin-1").splitlines():
+        for pattern in _UNITS_RE:
+            match = pattern.search(line.strip())
+            if match:
+                word = match.group(1).lower()
+                return "mm" if word.startswith(("mm", "milli")) else "m"
+    return None
+
+
+def _resolve_units(model, cad: trimesh.Trimesh, units: str | None, file_units: str | None, path) -> tuple[str, str]:
+    """(units, how they were chosen: "stated", "file" or "size")."""
+    if units is not None:
+        return units, "stated"
+    if file_units is not None:
+        return file_units, "file"
+    ratio = float(np.linalg.norm(np.ptp(model.vertices, axis=0)) / np.linalg.norm(np.ptp(cad.vertices, axis=0)))
+    for guess, scale in UNITS_TO_MM.items():
+        if 0.2 <= ratio * scale <= 5.0:
+            log.warning("%s: units not stated; %s inferred from its size next to the CAD's", path, guess)
+            return guess, "size"
+    raise ModelError(f"{path}: the file does not state its units and its size does not tell; pass --units mm|m")
