@@ -145,7 +145,7 @@ def test_compare_writes_the_report_for_a_model_in_metres(cads, tmp_path):
     write_stl(tmp_path / "cad.stl", cad.vertices, cad.faces, "vio part cube_features: part frame, mm")
     vertices, _ = _moved(np.asarray(cad.vertices), np.random.default_rng(4))
     write_stl(tmp_path / "model.stl", vertices / 1000.0, cad.faces, "somebody's scan: world, m")
-    report = compare(tmp_path / "model.stl", tmp_path / "cad.stl", tmp_path / "out", samples=20_000)
+    report = compare(tmp_path / "model.stl", tmp_path / "cad.stl", tmp_path / "out", samples=10_000)
     assert (report["units"], report["units_source"], report["kind"]) == ("m", "file", "mesh")
     assert abs(report["deviation"]["max_positive_mm"]) < 1e-3 and abs(report["deviation"]["max_negative_mm"]) < 1e-3
     assert report["completeness"] == 1.0 and report["quality"]["bad_edges"] == 0
