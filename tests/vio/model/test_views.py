@@ -223,7 +223,7 @@ def test_colmap_round_trip_of_simulated_stills(sim, tmp_path):
     for i in range(len(views)):
         names.append(f"still_{i}.png")
         cv2.imwrite(str(tmp_path / names[-1]), cap.stills.load_image(i))
-    k1, k2, p1, p2 = cam.dist
+    k1, k2, p1, p2 = (float(c) for c in cam.dist)
     intrinsics = f"{cam.width} {cam.height} {cam.fx!r} {cam.fy!r} {cam.cx + 0.5!r} {cam.cy + 0.5!r}"
     opencv, pinhole = f"1 OPENCV {intrinsics} {k1!r} {k2!r} {p1!r} {p2!r}", f"2 PINHOLE {intrinsics}"
     ids = [1, 1, 2, 1, 2]
