@@ -175,6 +175,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib", help="Kalibr YAML or ASL mav0 folder with the calibration")
     p.set_defaults(func=_cmd_info)
 
+    from vio.cli_model import add_model_commands
+
+    add_model_commands(sub)
+
     p = sub.add_parser("demo", help="simulate the orbit capture, run, evaluate, report")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--duration", type=float, default=30.0)

@@ -61,9 +61,9 @@ def compare(
     t0 = time.perf_counter()
     if (units is not None and units not in UNITS_TO_MM) or cad_units not in UNITS_TO_MM:
         raise ModelError(f"unknown units {units!r}; use one of {', '.join(UNITS_TO_MM)}")
-    cad = _load_cad(cad_path, cad_units)
-    model, file_units = _load_model(model_path)
-    units, units_source = _resolve_units(model, cad, units, file_units, model_path)
+    cad = load_cad(cad_path, cad_units)
+    model, file_units = load_model(model_path)
+    units, units_source = resolve_units(model, cad, units, file_units, model_path)
     model.apply_scale(UNITS_TO_MM[units])
     rng = np.random.default_rng(seed)
     points = dev.model_points(model, sampling, samples, rng)
@@ -141,7 +141,7 @@ def compare(
     return report
 
 
-def _load_cad(path: str | os.PathLike[str], units: str) -> trimesh.Trimesh:
+def load_cad(path: str | os.PathLike[str], units: str) -> trimesh.Trimesh:
     """The CAD as a closed, outward-wound mesh in mm (its own frame)."""
     from vio.sim.parts import read_stl_mesh
 
@@ -152,7 +152,7 @@ def _load_cad(path: str | os.PathLike[str], units: str) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices * UNITS_TO_MM[units], faces, process=False)
 
 
-def _load_model(path: str | os.PathLike[str]) -> tuple[trimesh.Trimesh | trimesh.PointCloud, str | None]:
+def load_model(path: str | os.PathLike[str]) -> tuple[trimesh.Trimesh | trimesh.PointCloud, str | None]:
     """(the model as a mesh or a point cloud in the file's units and frame, the units its header states or None)."""
     path = Path(path)
     try:
@@ -199,7 +199,7 @@ def _header_units(head: bytes, kind: str) -> str | None:
     return None
 
 
-def _resolve_units(model, cad: trimesh.Trimesh, units: str | None, file_units: str | None, path) -> tuple[str, str]:
+def resolve_units(model, cad: trimesh.Trimesh, units: str | None, file_units: str | None, path) -> tuple[str, str]:
     """(units, how they were chosen: "stated", "file" or "size")."""
     if units is not None:
         return units, "stated"

@@ -1,0 +1,217 @@
+"""`vio model`: the part from a run (or from images with known cameras), step by step.
+
+views (vio.model.views) -> support plane and region of interest (isolate) -> multi-view stereo depth maps (dense)
+-> depth fusion (fuse) -> watertight mesh (mesh) -> files: `part.stl` (millimetres, the part on its base: support
+frame, z up), `part.ply` (the same mesh with grey levels from the images), `dense.ply` (the fused depth points,
+world frame, m), `model.json` (parameters, counts, timings, mesh checks, the run's scale uncertainty, warnings).
+Every file is written atomically; a model that is not watertight is written but flagged in model.json and the log.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vio.atomic import ensure_dir, write_json
+from vio.errors import ModelError
+from vio.model.records import Mesh, Roi, SupportPlane, View
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """What `vio model` can be told (lengths in m unless stated)."""
+
+    source: str = "auto"  # auto | stills | video: which images of a capture
+    max_views: int = 0  # use at most this many views, evenly spread (0: all)
+    voxel_m: float = 4e-4  # fusion voxel edge
+    margin_m: float = 0.01  # region of interest grown by this much around the part
+    roi_world: np.ndarray | None = None  # (2, 3) world min/max corners given by the user (--roi)
+    dense_method: str = "sweep"  # sweep | sgbm (vio.model.dense)
+    seed: int = 0  # RANSAC
+
+
+@dataclass
+class ModelResult:
+    out: Path
+    mesh_world: Mesh
+    mesh_support: Mesh
+    plane: SupportPlane | None
+    roi: Roi
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def _timed(timings: dict[str, float], name: str, t0: float) -> float:
+    now = time.perf_counter()
+    timings[name] = round(now - t0, 3)
+    return now
+
+
+def _up_hint(views: Sequence[View], points: np.ndarray) -> np.ndarray:
+    centres = np.array([v.world_T_cam[:3, 3] for v in views])
+    up = centres.mean(axis=0) - np.median(points, axis=0)
+    return up / max(np.linalg.norm(up), 1e-12)
+
+
+def model_from_views(
+    views: list[View],
+    sparse_world: np.ndarray | None,
+    out: str | Path,
+    options: ModelOptions = ModelOptions(),
+    extra: dict[str, Any] | None = None,
+) -> ModelResult:
+    """Build the part from calibrated views; `sparse_world` (N, 3) m are points that find the support plane and
+    the part (a run's landmarks), or None to take them from a first depth pass."""
+    from vio.model import dense, fuse, isolate, mesh
+    from vio.writers import mesh as mesh_io
+
+    out = ensure_dir(out)
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    t0 = time.perf_counter()
+    if len(views) < 3:
+        raise ModelError(f"{len(views)} view(s): multi-view stereo needs at least 3 images")
+    rng = np.random.default_rng(options.seed)
+    cfg = dense.DenseConfig(method=options.dense_method)
+    if sparse_world is None or len(sparse_world) < 50:
+        first = dense.depth_maps(views[:: max(1, len(views) // 8)], None, cfg)
+        sparse_world = _depth_points(views[:: max(1, len(views) // 8)], first, 20000, rng)
+        t0 = _timed(timings, "first_pass", t0)
+    plane = None
+    try:
+        plane = isolate.support_plane(sparse_world, _up_hint(views, sparse_world), rng)
+    except ModelError as exc:
+        if options.roi_world is None:
+            raise
+        warnings.append(f"no support plane ({exc}); the model's bottom is not closed")
+    roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world)
+    t0 = _timed(timings, "isolate", t0)
+    maps = dense.depth_maps(views, roi, cfg)
+    t0 = _timed(timings, "dense", t0)
+    volume = fuse.fuse_depth_maps(views, maps, roi, voxel_m=options.voxel_m)
+    points, colours = fuse.fused_points(views, maps, volume)
+    t0 = _timed(timings, "fuse", t0)
+    mesh_world = mesh.mesh_from_volume(volume, frame="world")
+    mesh_support = mesh.to_support(mesh_world, roi.world_T_support)
+    checks = mesh.mesh_checks(mesh_world)
+    t0 = _timed(timings, "mesh", t0)
+    if not checks.get("watertight", False):
+        warnings.append("the mesh is not watertight; part.stl is not a closed solid")
+    mesh_io.write_stl(out / "part.stl", mesh_support.vertices, mesh_support.faces, "vio part model, mm", scale=1e3)
+    mesh_io.write_mesh_ply(out / "part.ply", mesh_support.vertices, mesh_support.faces, mesh_support.colours)
+    mesh_io.write_points_ply(out / "dense.ply", points, colours)
+    _timed(timings, "write", t0)
+    summary = {
+        "status": "ok" if not warnings else "degraded",
+        "files": {"part.stl": "mm, support frame", "part.ply": "m, support frame", "dense.ply": "m, world"},
+        "num_views": len(views),
+        "num_depth_maps": len(maps),
+        "num_dense_points": int(len(points)),
+        "voxel_m": options.voxel_m,
+        "dense_method": options.dense_method,
+        "support_plane": None
+        if plane is None
+        else {"normal": plane.normal.tolist(), "d_m": plane.d_m, "inlier_rms_m": plane.inlier_rms_m},
+        "world_T_support": roi.world_T_support.tolist(),
+        "roi_support_m": {"lo": roi.lo.tolist(), "hi": roi.hi.tolist()},
+        "mesh": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in checks.items()},
+        "timings_s": timings,
+        "warnings": warnings,
+        **(extra or {}),
+    }
+    write_json(out / "model.json", summary)
+    for w in warnings:
+        log.warning(w)
+    return ModelResult(out, mesh_world, mesh_support, plane, roi, summary)
+
+
+def _depth_points(views: Sequence[View], maps: Sequence[Any], n: int, rng: np.random.Generator) -> np.ndarray:
+    """Up to n world points from depth maps (m)."""
+    pts = []
+    for dm in maps:
+        v = views[dm.view]
+        vv, uu = np.nonzero(np.isfinite(dm.depth_m))
+        z = dm.depth_m[vv, uu]
+        xyz = np.linalg.solve(v.K, np.stack([uu * z, vv * z, z]))
+        pts.append(xyz.T @ v.world_T_cam[:3, :3].T + v.world_T_cam[:3, 3])
+    p = np.concatenate(pts) if pts else np.zeros((0, 3))
+    return p[rng.choice(len(p), size=min(n, len(p)), replace=False)] if len(p) else p
+
+
+def model_capture(
+    capture: str | Path, run_dir: str | Path | None, out: str | Path, options: ModelOptions = ModelOptions()
+) -> ModelResult:
+    """The part from a capture and its run (`vio run` first, into `out/run`, when `run_dir` is None)."""
+    from vio.model.views import views_from_run
+    from vio.readers import open_capture
+    from vio.trajio import read_trajectory
+
+    out = ensure_dir(out)
+    t0 = time.perf_counter()
+    if run_dir is None:
+        from vio.config import load_config
+        from vio.pipeline import run_capture
+
+        run_dir = out / "run"
+        run_capture(capture, run_dir, load_config(None, ["run.progress=false"]))
+    run_dir = Path(run_dir)
+    if not (run_dir / "trajectory.tum").is_file():
+        raise ModelError(f"{run_dir}: no trajectory.tum (a `vio run` output folder is needed)")
+    cap = open_capture(capture)
+    views = views_from_run(cap, read_trajectory(run_dir / "trajectory.tum"), options.source, options.max_views)
+    run = json.loads((run_dir / "run.json").read_text(encoding="utf-8")) if (run_dir / "run.json").is_file() else {}
+    scale = (run.get("scale") or {}).get("sigma_rel")
+    sparse = _read_ply_points(run_dir / "landmarks.ply")
+    extra = {
+        "capture": str(capture),
+        "run": str(run_dir),
+        "source": "stills" if cap.stills is not None and options.source != "video" else "video",
+        "scale_sigma_rel": scale,
+        "run_status": run.get("status"),
+        "views_s": round(time.perf_counter() - t0, 3),
+    }
+    return model_from_views(views, sparse, out, options, extra)
+
+
+def _read_ply_points(path: Path) -> np.ndarray | None:
+    """x y z of an ASCII PLY vertex list (our landmarks.ply), or None when missing."""
+    if not path.is_file():
+        return None
+    lines = path.read_text(encoding="utf-8").splitlines()
+    try:
+        start = lines.index("end_header") + 1
+    except ValueError:
+        return None
+    rows = [ln.split()[:3] for ln in lines[start:] if ln.strip()]
+    return np.array(rows, float).reshape(-1, 3)
+
+
+def model_from_image_set(
+    out: str | Path,
+    options: ModelOptions = ModelOptions(),
+    middlebury: str | Path | None = None,
+    colmap: str | Path | None = None,
+    images: str | Path | None = None,
+) -> ModelResult:
+    """The part from images with known cameras and no IMU: a Middlebury `*_par.txt`, or a COLMAP text model with
+    its images folder (metric when the cameras are). Without a run's landmarks, the support plane and the part
+    are found from a first depth pass; give `options.roi_world` when the part stands on no plane."""
+    from vio.model.views import views_from_colmap, views_from_middlebury
+
+    if middlebury is not None:
+        views, source = views_from_middlebury(middlebury), {"middlebury": str(middlebury)}
+    elif colmap is not None and images is not None:
+        views, source = views_from_colmap(colmap, images), {"colmap": str(colmap), "images": str(images)}
+    else:
+        raise ModelError("give a Middlebury *_par.txt, or a COLMAP text model with its images folder")
+    if options.max_views and len(views) > options.max_views:
+        views = [views[i] for i in np.linspace(0, len(views) - 1, options.max_views).round().astype(int)]
+    return model_from_views(views, None, out, options, {"source": source, "scale_sigma_rel": None})
