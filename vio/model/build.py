@@ -25,6 +25,9 @@ from vio.model.records import Mesh, Roi, SupportPlane, View
 
 log = logging.getLogger(__name__)
 
+SPARSE_MIN_HEIGHT_M = 8e-3  # from landmarks, the part is what stands this far above the support (measured: 3-5 mm
+# let table landmarks with mm-level errors bridge into one cluster with the part on the 20 s orbit)
+
 
 @dataclass(frozen=True)
 class ModelOptions:
@@ -67,9 +70,11 @@ def model_from_views(
     out: str | Path,
     options: ModelOptions = ModelOptions(),
     extra: dict[str, Any] | None = None,
+    up_world: np.ndarray | None = None,
 ) -> ModelResult:
     """Build the part from calibrated views; `sparse_world` (N, 3) m are points that find the support plane and
-    the part (a run's landmarks), or None to take them from a first depth pass."""
+    the part (a run's landmarks), or None to take them from a first depth pass. `up_world` is the world's up
+    (a visual-inertial run's world is gravity-aligned: +z); None guesses it from where the cameras are."""
     from vio.model import dense, fuse, isolate, mesh
     from vio.writers import mesh as mesh_io
 
@@ -81,18 +86,22 @@ def model_from_views(
         raise ModelError(f"{len(views)} view(s): multi-view stereo needs at least 3 images")
     rng = np.random.default_rng(options.seed)
     cfg = dense.DenseConfig(method=options.dense_method)
-    if sparse_world is None or len(sparse_world) < 50:
+    sparse_from_run = sparse_world is not None and len(sparse_world) >= 50
+    if not sparse_from_run:
         first = dense.depth_maps(views[:: max(1, len(views) // 8)], None, cfg)
         sparse_world = _depth_points(views[:: max(1, len(views) // 8)], first, 20000, rng)
         t0 = _timed(timings, "first_pass", t0)
     plane = None
     try:
-        plane = isolate.support_plane(sparse_world, _up_hint(views, sparse_world), rng)
+        up = _up_hint(views, sparse_world) if up_world is None else np.asarray(up_world, float)
+        plane = isolate.support_plane(sparse_world, up, rng)
     except ModelError as exc:
         if options.roi_world is None:
             raise
         warnings.append(f"no support plane ({exc}); the model's bottom is not closed")
-    roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world)
+    # sparse landmarks scatter a few mm about the table: the part is the cluster standing clear of that
+    min_height = SPARSE_MIN_HEIGHT_M if sparse_from_run else 1e-3
+    roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world, min_height)
     t0 = _timed(timings, "isolate", t0)
     maps = dense.depth_maps(views, roi, cfg)
     t0 = _timed(timings, "dense", t0)
@@ -178,7 +187,7 @@ def model_capture(
         "run_status": run.get("status"),
         "views_s": round(time.perf_counter() - t0, 3),
     }
-    return model_from_views(views, sparse, out, options, extra)
+    return model_from_views(views, sparse, out, options, extra, up_world=np.array([0.0, 0.0, 1.0]))
 
 
 def _read_ply_points(path: Path) -> np.ndarray | None:
