@@ -105,31 +105,30 @@ def iter_depth_maps(
     if config.method not in METHODS:
         raise ConfigError(f"dense method must be one of {', '.join(METHODS)}, got {config.method!r}")
     match = sweep_depth if config.method == "sweep" else sgbm_depth
-    crops: list[Crop | None] = []
-    for v in views:
-        box = roi_bbox(v, roi, config.margin_px)
-        crop = None
-        if box is not None:
-            x0, y0, x1, y1 = box
-            image = v.image[y0:y1, x0:x1]
-            crop = Crop(gray(image), np.asarray(v.K, float), np.asarray(v.world_T_cam, float), x0, y0)
-        crops.append(crop)
-    neighbours = select_neighbours(views, roi, config, [c is not None for c in crops])
-    for i, (view, crop) in enumerate(zip(views, crops, strict=True)):
+    boxes = [roi_bbox(v, roi, config.margin_px) for v in views]
+    neighbours = select_neighbours(views, roi, config, [b is not None for b in boxes])
+
+    def crop(j: int) -> Crop:  # cut when needed: 120 float32 stills would take 1.5 GB
+        x0, y0, x1, y1 = boxes[j]
+        v = views[j]
+        return Crop(gray(v.image[y0:y1, x0:x1]), np.asarray(v.K, float), np.asarray(v.world_T_cam, float), x0, y0)
+
+    for i, view in enumerate(views):
         if references is not None and i not in references:
             continue
-        window = None if crop is None else roi_window(crop, roi, config)
+        window = None if boxes[i] is None else roi_window(crop(i), roi, config)
         if window is None or not neighbours[i]:
             log.info("view %s: %s, no depth map", view.name, "ROI not seen" if window is None else "no neighbours")
             continue
         start = time.perf_counter()
-        depth, score = match(crops, i, neighbours[i], window, config)
+        depth, score = match(window, [crop(j) for j in neighbours[i]], config)
+        x0, y0 = window.crop.x0, window.crop.y0
         w, h = view.size
         ch, cw = depth.shape
         depth_m = np.full((h, w), np.nan, np.float32)
         confidence = np.zeros((h, w), np.float32)
-        depth_m[crop.y0 : crop.y0 + ch, crop.x0 : crop.x0 + cw] = depth
-        confidence[crop.y0 : crop.y0 + ch, crop.x0 : crop.x0 + cw] = np.where(np.isfinite(depth), score, 0.0)
+        depth_m[y0 : y0 + ch, x0 : x0 + cw] = depth
+        confidence[y0 : y0 + ch, x0 : x0 + cw] = np.where(np.isfinite(depth), score, 0.0)
         log.debug(
             "view %s: %d neighbours, window %dx%d, %d depths, %.2f s",
             view.name,
@@ -142,6 +141,11 @@ def iter_depth_maps(
         yield DepthMap(i, depth_m, confidence)
 
 
-def depth_maps(views: list[View], roi: Roi | None = None, config: DenseConfig | None = None) -> list[DepthMap]:
+def depth_maps(
+    views: list[View],
+    roi: Roi | None = None,
+    config: DenseConfig | None = None,
+    references: Collection[int] | None = None,
+) -> list[DepthMap]:
     """All depth maps (see `iter_depth_maps`; prefer it for many full-resolution views)."""
-    return list(iter_depth_maps(views, roi, config))
+    return list(iter_depth_maps(views, roi, config, references))

@@ -30,6 +30,9 @@ class DenseConfig:
     ncc_window_px: int = 7  # NCC window side (sweep) or SGBM block size
     levels: int = 2  # sweep: pyramid levels (1: full-resolution sweep; 2: half-resolution sweep, then refine)
     step_px: float = 1.5  # sweep: largest image shift between consecutive planes in any neighbour (coarsest level)
+    max_planes: int = 256  # sweep: at most this many planes (the step grows for wide depth ranges)
+    max_sweep_pixels: int = 300_000  # sweep: more levels until the coarsest crop has at most this many pixels
+    max_image_pixels: int = 0  # sweep: depth computed at the first level with at most this many pixels (0: full)
     min_ncc: float = 0.5  # sweep: smallest accepted mean NCC at the best depth
     uniqueness: float = 0.05  # sweep: best NCC must beat the best outside +-2 planes by this much (coarsest level)
     smooth_px: int = 21  # sweep: a finer level's seed is the mean inverse depth over this window (full-resolution px)
@@ -39,7 +42,7 @@ class DenseConfig:
     rim_px: int = 4  # sweep: depths this close to a hole wider than 6 rim_px + 3 (a silhouette) are dropped
     sgbm_min_agree: int = 2  # sgbm: pairs whose depth agrees with the median (within 0.2 %)
     margin_px: int = 8  # the ROI window is grown by this much
-    depth_range_m: tuple[float, float] = (0.1, 3.0)  # depths searched without a ROI, m
+    depth_range_m: tuple[float, float] = (0.15, 2.0)  # depths searched without a ROI, m
 
 
 @dataclass(frozen=True)

@@ -39,8 +39,10 @@ def _resample(crop: Crop, R_rect: np.ndarray, M: np.ndarray, a0: int, b0: int, w
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
-def pair_depth(ref: Crop, nbr: Crop, window: Window, config: DenseConfig) -> np.ndarray:
-    """(h, w) z-depth of the reference crop from one rectified pair (m, NaN where unmatched or inconsistent)."""
+def pair_depth(nbr: Crop, window: Window, config: DenseConfig) -> np.ndarray:
+    """(h, w) z-depth of the window's reference crop from one rectified pair (m, NaN where unmatched or
+    inconsistent)."""
+    ref = window.crop
     h, w = ref.image.shape
     nbr_T_ref = inv_T(nbr.world_T_cam) @ ref.world_T_cam
     size = (int(2 * ref.K[0, 2]) + 1, int(2 * ref.K[1, 2]) + 1)
@@ -60,7 +62,7 @@ def pair_depth(ref: Crop, nbr: Crop, window: Window, config: DenseConfig) -> np.
     z_rect = np.stack([window.z_near, window.z_far])[:, inside] * rays_ref[inside][:, 2]
     d_lo, d_hi = f_b / z_rect.max() - 2.0, f_b / z_rect.min() + 2.0
     shift = int(np.floor(d_lo))  # the neighbour's image is moved by this many px: disparities start at 0
-    n_disp = int(np.ceil((d_hi - shift) / 16.0)) * 16
+    n_disp = min(int(np.ceil((d_hi - shift) / 16.0)) * 16, 16 * (config.max_planes // 16))  # near depths cut
     a0, b0 = int(np.floor(ab[..., 0].min())) - n_disp, int(np.floor(ab[..., 1].min()))
     cw, ch = int(np.ceil(ab[..., 0].max())) + 2 - a0, int(np.ceil(ab[..., 1].max())) + 2 - b0
     left = _resample(ref, R1, M1, a0, b0, cw, ch)
@@ -86,12 +88,10 @@ def pair_depth(ref: Crop, nbr: Crop, window: Window, config: DenseConfig) -> np.
     return (f_b / d / rays_ref[..., 2]).astype(np.float32)
 
 
-def sgbm_depth(
-    crops: list[Crop | None], i: int, nbrs: list[int], window: Window, config: DenseConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """(h, w) z-depth of reference crop i (m; the median of the pairs' depths, NaN where fewer than sgbm_min_agree
-    pairs agree with it within 0.2 % or outside the ROI) and the share of pairs that agree."""
-    depths = np.stack([pair_depth(crops[i], crops[j], window, config) for j in nbrs])
+def sgbm_depth(window: Window, nbrs: list[Crop], config: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) z-depth of the window's reference crop (m; the median of the pairs' depths, NaN where fewer than
+    sgbm_min_agree pairs agree with it within 0.2 % or outside the ROI) and the share of pairs that agree."""
+    depths = np.stack([pair_depth(nbr, window, config) for nbr in nbrs])
     with np.errstate(invalid="ignore"):
         depths[~((depths >= window.z_near) & (depths <= window.z_far))] = np.nan
     found = np.isfinite(depths)

@@ -102,6 +102,7 @@ def _sweep(ref: Crop, nbrs: list[Crop], rho_near: np.ndarray, rho_far: np.ndarra
     rho_lo, rho_hi = float(rho_far[inside].min()), float(rho_near[inside].max())
     hs = [homographies(ref, n) for n in nbrs]
     n_planes = max(int(np.ceil(_shift_span_px(hs, h, w, (rho_lo, rho_hi)) / config.step_px)) + 1, 3)
+    n_planes = min(n_planes, config.max_planes)  # a wide depth range (no ROI) samples more coarsely
     rhos = np.linspace(rho_hi, rho_lo, n_planes)
     tol = abs(rhos[1] - rhos[0])
     ncc = _Ncc(ref.image, config.ncc_window_px)
@@ -185,22 +186,33 @@ def _upsample(rho: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return cv2.remap(rho, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def sweep_depth(
-    crops: list[Crop | None], i: int, nbrs: list[int], window: Window, config: DenseConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """(h, w) z-depth of reference crop i (m, NaN where rejected) and the mean NCC at it."""
-    pyramid = [[crops[i], *(crops[j] for j in nbrs)]]
-    for _ in range(config.levels - 1):
+def _levels(pixels: int, config: DenseConfig) -> tuple[int, int]:
+    """(pyramid levels, finest level computed): the output is the first level with at most max_image_pixels (0: full
+    resolution), the sweep runs `levels` - 1 levels below it and at most max_sweep_pixels."""
+    finest = 0
+    while config.max_image_pixels and pixels / 4**finest > config.max_image_pixels:
+        finest += 1
+    levels = finest + config.levels
+    while pixels / 4 ** (levels - 1) > config.max_sweep_pixels:
+        levels += 1
+    return levels, finest
+
+
+def sweep_depth(window: Window, nbrs: list[Crop], config: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) z-depth of the window's reference crop (m, NaN where rejected) and the mean NCC at it."""
+    levels, finest = _levels(window.crop.image.size, config)
+    pyramid = [[window.crop, *nbrs]]
+    for _ in range(levels - 1):
         pyramid.append([half(c) for c in pyramid[-1]])
     with np.errstate(divide="ignore"):
         rho_near = np.where(np.isfinite(window.z_near), 1.0 / window.z_near, 0.0).astype(np.float32)
         rho_far = np.where(np.isfinite(window.z_far), 1.0 / window.z_far, 0.0).astype(np.float32)
     inside = np.isfinite(window.z_near)
     rho_lo, rho_hi = float(rho_far[inside].min()), float(rho_near[inside].max())
-    step = 2 ** (config.levels - 1)
+    step = 2 ** (levels - 1)
     ref, *others = pyramid[-1]
     rho, score = _sweep(ref, others, rho_near[::step, ::step], rho_far[::step, ::step], config)
-    for level in range(config.levels - 2, -1, -1):
+    for level in range(levels - 2, finest - 1, -1):
         ref, *others = pyramid[level]
         k = config.smooth_px // 2 | 1  # the first seed, smoothed one level down: about smooth_px here
         seed = _upsample(_smooth(rho, k), ref.image.shape)
@@ -208,6 +220,9 @@ def sweep_depth(
         for _ in range(config.fine_passes if level == 0 else 1):
             rho, score = refiner.search(seed, config.fine_radius_px)
             seed = _smooth(rho, config.smooth_px)
+    for level in range(finest - 1, -1, -1):  # a reduced output resolution: spread to the crop's pixels
+        shape = pyramid[level][0].image.shape
+        rho, score = _upsample(rho, shape), _upsample(score, shape)
     tol = 0.002 * rho_near
     ok = np.isfinite(rho) & (rho <= rho_near + tol) & (rho >= rho_far - tol) & (rho > 0)
     if config.rim_px > 0:  # windows across a silhouette fatten the foreground: drop the rims of wide holes

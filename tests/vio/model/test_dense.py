@@ -69,6 +69,19 @@ def test_depth_of_a_speckled_cube_matches_the_truth(scene, method):
     assert np.all((dm.confidence >= 0) & (dm.confidence <= 1)) and np.all(dm.confidence[~found] == 0)
 
 
+def test_without_roi_at_reduced_resolution(scene):
+    """A first pass without a ROI (whole image, a depth range) with the output at half resolution: measured median
+    0.22 mm, p90 0.89 mm, completeness 0.71 on the part, 96 % of all depths within 5 mm."""
+    views, renderer, _ = scene
+    config = DenseConfig(depth_range_m=(0.3, 0.9), max_image_pixels=200_000)
+    (dm,) = iter_depth_maps(views, None, config, references=[REF])
+    truth, part = true_depth(renderer, views[REF])
+    found = np.isfinite(dm.depth_m)
+    err_mm = np.abs(dm.depth_m - truth) * 1e3
+    assert np.median(err_mm[found & part]) < 0.45 and (found & part).sum() / part.sum() > 0.5
+    assert np.mean(err_mm[found] < 5.0) > 0.9
+
+
 def test_depths_stay_inside_the_roi_box(scene):
     views, _, roi = scene
     (dm,) = iter_depth_maps(views, roi, references=[REF])
