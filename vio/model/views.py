@@ -27,6 +27,7 @@ from vio.trajio import Trajectory
 log = logging.getLogger(__name__)
 
 VIDEO_VIEW_HZ = 2.0  # video frames are subsampled to about this rate, Hz
+MAX_GAP_NS = 500_000_000  # an image between trajectory poses further apart than this is not posed (tracking lost)
 # COLMAP camera models read here -> number of parameters
 COLMAP_MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
 
@@ -44,8 +45,8 @@ def undistorter(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> Calla
 def interpolate_world_T_body(
     trajectory: Trajectory, t_ns: np.ndarray, method: str = "cubic"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 4, 4) world_T_body at times t_ns and the (N,) mask of times inside the trajectory's span (poses outside
-    it are identity).
+    """(N, 4, 4) world_T_body at times t_ns and the (N,) mask of times inside the trajectory's span and not in a gap
+    of more than MAX_GAP_NS between its poses (the others are identity).
 
     method "cubic": C2 rotation spline (scipy `RotationSpline`) and cubic position spline; "linear": SLERP and
     linear position. On the simulated orbit with poses 0.1 s apart (keyframes) linear interpolation misplaces the
@@ -59,6 +60,10 @@ def interpolate_world_T_body(
     if len(trajectory) == 0:
         return out, np.zeros(len(t_ns), bool)
     inside = (t_ns >= trajectory.t_ns[0]) & (t_ns <= trajectory.t_ns[-1])
+    after = np.clip(np.searchsorted(trajectory.t_ns, t_ns), 1, max(len(trajectory) - 1, 1))
+    if len(trajectory) > 1:
+        on_pose = (t_ns == trajectory.t_ns[after]) | (t_ns == trajectory.t_ns[after - 1])
+        inside &= (trajectory.t_ns[after] - trajectory.t_ns[after - 1] <= MAX_GAP_NS) | on_pose
     if not inside.any():
         return out, inside
     if len(trajectory) == 1:
@@ -105,7 +110,8 @@ def views_from_run(
         raise CaptureError(f"no {kind} to build views from", cap.root)
     world_T_body, inside = interpolate_world_T_body(trajectory, t_ns[index], interpolation)
     if not inside.all():
-        log.warning("%d of %d %s lie outside the trajectory's span: skipped", int((~inside).sum()), index.size, kind)
+        n_out = int((~inside).sum())
+        log.warning("%d of %d %s lie outside the trajectory's span or in its gaps: skipped", n_out, index.size, kind)
     index, world_T_body = index[inside], world_T_body[inside]
     if index.size == 0:
         raise CaptureError(f"none of the {kind} lies inside the trajectory's time span", cap.root)

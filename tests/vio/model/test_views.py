@@ -129,6 +129,8 @@ def test_images_outside_the_trajectory_are_skipped(sim, caplog):
         views = views_from_run(cap, late)
     assert [v.t_ns for v in views] == list(cap.stills.t_ns[2:])
     assert "2 of 5 stills lie outside" in caplog.text
+    gap = traj.subset((traj.t_ns < cap.stills.t_ns[1] - 100_000_000) | (traj.t_ns > cap.stills.t_ns[3] - 200_000_000))
+    assert [v.t_ns for v in views_from_run(cap, gap)] == [cap.stills.t_ns[i] for i in (0, 3, 4)]
     with pytest.raises(CaptureError, match="none of the stills lies inside"):
         views_from_run(cap, traj.subset(traj.t_ns > cap.stills.t_ns[-1]))
     with pytest.raises(CaptureError, match="view source"):
