@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -163,18 +164,15 @@ def simulate(
     overwrite: bool = False,
     images: bool = True,
     workers: int | None = None,
-    part: str = "cube",
-    part_units: str = "mm",
-    surface: str = "speckle",
-    stills_hz: float = 0.0,
-    stills_size: tuple[int, int] = rig.STILLS_SIZE,
+    **scene: Any,
 ) -> Path:
     """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
 
     `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
-    `workers` render processes (default: 2, or 1 for short captures).
+    `workers` render processes (default: 2, or 1 for short captures). `scene` holds `load_scenario`'s part,
+    part_units, surface, stills_hz and stills_size.
     """
-    sc = load_scenario(scenario, seed, duration_s, imu_grade, part, part_units, surface, stills_hz, stills_size)
+    sc = load_scenario(scenario, seed, duration_s, imu_grade, **scene)
     _, ss_imu, ss_img, _, ss_stills = _streams(seed)
     imu, gt = simulate_imu(
         sc.trajectory,
