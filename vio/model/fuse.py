@@ -4,10 +4,14 @@ The grid is axis-aligned in the support frame (`Roi.world_T_support`: z up from 
 `origin + index * voxel_m`, with the plane on a voxel boundary. Each voxel is projected into every view (nearest
 pixel). Within the truncation distance of the depth it takes the projective signed distance (depth - voxel z-depth,
 weighted by the depth map's confidence and the cosine of the viewing angle); in front of the depth by more than the
-truncation it gets a free-space vote. The field is then: the weighted average (free votes count as +1) where a
-surface was observed near it; outside where `min_free_views` views saw through it; inside where fewer did (occluded
-from the cameras); outside below the support plane, so the part's base closes on the plane (the table seen around
-the part is a surface just below the voxels above it, hence outside). Two passes: a coarse grid finds the band
+truncation it gets a free-space vote, behind it by more than the truncation a behind vote; a pixel without depth
+is no evidence either way. The field is then: the weighted average (free votes count as +1) where a surface was
+observed near it; elsewhere inside only with positive evidence, i.e. behind an observed surface in at least one
+view, in at least as many views as saw no depth at its pixel, and seen through by fewer than `min_free_views`
+views (the part's interior, and cavities the cameras cannot see into, such as an undercut slot: every view that
+looks at them sees the part in front); outside otherwise: seen through, or never observed (a table without depth
+stays outside; the part's "shadow" on it is behind the part from one side only, without depth from the other);
+outside below the support plane, so the part's base closes on the plane. Two passes: a coarse grid finds the band
 around the surface and the occupancy elsewhere, then the band alone is fused at `voxel_m`.
 """
 
@@ -50,21 +54,26 @@ class FusedVolume:
 @dataclass
 class _Accumulator:
     """Per-voxel sums: weighted signed distance / truncation and its weight near a surface, free-space weight and
-    votes."""
+    votes, and the votes of views that saw it behind a surface or saw no depth at its pixel."""
 
     sdf: np.ndarray
     weight: np.ndarray
     free_weight: np.ndarray
     free: np.ndarray
+    behind: np.ndarray
+    unknown: np.ndarray
 
     @classmethod
     def zeros(cls, n: int) -> _Accumulator:
-        return cls(*(np.zeros(n, np.float32) for _ in range(3)), np.zeros(n, np.uint16))
+        return cls(*(np.zeros(n, np.float32) for _ in range(3)), *(np.zeros(n, np.uint16) for _ in range(3)))
 
     def field(self, min_free_views: int) -> np.ndarray:
         """Signed field in [-1, 1]: where a surface was seen near the voxel, the weighted average of its signed
-        distances and its free votes (+1 each); elsewhere +1 if `min_free_views` views saw through it, else -1."""
-        out = np.where(self.free >= min_free_views, np.float32(1.0), np.float32(-1.0))
+        distances and its free votes (+1 each); elsewhere -1 (inside) if at least one view saw it behind a surface,
+        at least as many views saw it behind as saw no depth there, and fewer than `min_free_views` saw through it;
+        else +1 (outside: seen through, or no evidence)."""
+        inside = (self.behind > 0) & (self.behind >= self.unknown) & (self.free < min_free_views)
+        out = np.where(inside, np.float32(-1.0), np.float32(1.0))
         near = self.weight > 0
         w_free = self.free_weight[near]
         out[near] = (self.sdf[near] + w_free) / (self.weight[near] + w_free)
@@ -143,12 +152,16 @@ def _integrate(
         ok = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         pix = np.where(ok, v * w + u, 0)
         sdf = flat_d.take(pix) - z  # NaN where the depth is unknown: every comparison below is False
+        unknown = ok & np.isnan(sdf)
         sdf[~ok] = np.nan
         wt = flat_w.take(pix)
         free = sdf > trunc_m
+        behind = sdf < -trunc_m
         near = (np.abs(sdf) <= trunc_m) & (wt > 0)
         sl = slice(s, s + c.shape[1])
         acc.free[sl] += free
+        acc.behind[sl] += behind
+        acc.unknown[sl] += unknown
         acc.free_weight[sl] += np.where(free, wt, zero)
         acc.sdf[sl] += np.where(near, wt * sdf * inv_trunc, zero)
         acc.weight[sl] += np.where(near, wt, zero)

@@ -92,6 +92,24 @@ def test_mesh_matches_the_cad(model):
     assert np.sqrt(np.mean(dist**2)) < 0.25 * VOXEL_M
 
 
+def test_missing_depth_is_no_evidence(model):
+    """With the table's depth unknown (outside the stereo's range), the voxels above it stay outside: only what
+    lies behind an observed surface becomes solid."""
+    views, maps, volume, _, _ = model
+    holed = []
+    for dm in maps:
+        view = views[dm.view]
+        v, u = np.mgrid[0 : dm.depth_m.shape[0], 0 : dm.depth_m.shape[1]]
+        K, T = view.K, view.world_T_cam
+        ray_z = T[2, 0] * (u - K[0, 2]) / K[0, 0] + T[2, 1] * (v - K[1, 2]) / K[1, 1] + T[2, 2]
+        table = T[2, 3] + ray_z * dm.depth_m < 2 * VOXEL_M  # world z of the pixel's point: on the table
+        holed.append(DepthMap(dm.view, np.where(table, np.nan, dm.depth_m).astype(np.float32)))
+    mesh = mesh_from_volume(fuse_depth_maps(views, holed, volume.roi, voxel_m=VOXEL_M))
+    checks = mesh_checks(mesh)
+    assert checks["watertight"] and checks["pieces"] == 1
+    assert checks["volume_m3"] == pytest.approx(SIDE_M**3, rel=0.02)
+
+
 def test_bottom_is_closed_on_the_plane(model):
     _, _, volume, mesh, _ = model
     base = to_support(mesh, volume.roi.world_T_support)
