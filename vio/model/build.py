@@ -93,8 +93,11 @@ def model_from_views(
         t0 = _timed(timings, "first_pass", t0)
     plane = None
     try:
-        up = _up_hint(views, sparse_world) if up_world is None else np.asarray(up_world, float)
-        plane = isolate.support_plane(sparse_world, up, rng)
+        if sparse_from_run:
+            up = _up_hint(views, sparse_world) if up_world is None else np.asarray(up_world, float)
+            plane = isolate.support_plane(sparse_world, up, rng)
+        else:
+            plane = isolate.support_plane_from_depth(sparse_world, views, up_world, rng)
     except ModelError as exc:
         if options.roi_world is None:
             raise

@@ -83,6 +83,55 @@ def support_plane(
     return SupportPlane(normal=normal, d_m=float(offset), inlier_rms_m=rms)
 
 
+def support_plane_from_depth(
+    points_world: np.ndarray,
+    views: Sequence[View],
+    up_world: np.ndarray | None,
+    rng: np.random.Generator,
+    max_below: float = 0.05,
+) -> SupportPlane:
+    """The support plane from a first (coarse, noisy) depth pass, which sees the table little and at grazing angles.
+
+    Points (N, 3) world m. `up_world` is the world's up when known (a run's world is gravity-aligned): RANSAC
+    within 10 deg of it; else up is guessed from the cameras (they look down at the part: mean camera centre minus
+    the look-at point) and RANSAC within 30 deg. The plane is accepted only when at most `max_below` of the points
+    near the part (within 0.3 x the cameras' median horizontal distance from the look-at point) lie more than
+    3 mm below it: a part stands on its support. Otherwise, with a known up, the plane is the horizontal one under
+    those points (the lowest 1 mm height slice holding a fifth of their typical density). Raises ModelError when
+    neither gives a plane."""
+    target = look_at_point(views)
+    centres = np.array([v.world_T_cam[:3, 3] for v in views])
+    known = up_world is not None
+    up = np.asarray(up_world, float) if known else centres.mean(axis=0) - target
+    up = up / max(float(np.linalg.norm(up)), 1e-12)
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    flat = lambda p: p - np.outer((p - target) @ up, up)  # noqa: E731  projection on the plane through target
+    radius = 0.3 * float(np.median(np.linalg.norm(flat(centres) - target, axis=1)))
+    near = pts[np.linalg.norm(flat(pts) - target, axis=1) < radius]
+    if len(near) < _MIN_POINTS:
+        raise ModelError(f"no support plane: {len(near)} depth points near where the cameras look")
+    try:
+        plane = support_plane(pts, up, rng, max_tilt_deg=10.0 if known else 30.0)
+        below = float(np.mean(plane.height(near) < -3e-3))
+        if below <= max_below:
+            return plane
+        reason = f"{100 * below:.0f} % of the part's points below the RANSAC plane"
+    except ModelError as exc:
+        reason = str(exc)
+    if not known:
+        raise ModelError(f"no support plane from the first depth pass ({reason})")
+    h = near @ up
+    lo, hi = np.percentile(h, [10.0, 90.0])
+    counts, edges = np.histogram(h, bins=np.arange(h.min(), h.max() + 2e-3, 1e-3))
+    bulk = np.median(counts[(edges[:-1] >= lo) & (edges[:-1] <= hi)])
+    d = float(edges[np.argmax(counts >= 0.2 * bulk)])  # the lowest 1 mm slice as dense as a fifth of the bulk
+    log.info("support plane: horizontal under the part's points at %.4f m (%s)", d, reason)
+    resid = near @ up - d
+    rms = float(np.sqrt(np.mean(resid[np.abs(resid) < 1e-3] ** 2))) if (np.abs(resid) < 1e-3).any() else 0.0
+    return SupportPlane(normal=up, d_m=d, inlier_rms_m=rms)
+
+
 def look_at_point(views: Sequence[View]) -> np.ndarray:
     """(3,) world point closest (least squares) to all the views' optical axes, m."""
     A = np.zeros((3, 3))

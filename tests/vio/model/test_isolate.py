@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from vio.errors import ModelError
-from vio.model.isolate import look_at_point, region_of_interest, support_plane
+from vio.model.isolate import look_at_point, region_of_interest, support_plane, support_plane_from_depth
 from vio.model.records import SupportPlane, View
 
 NORMAL = np.array([0.08, -0.15, 1.0]) / np.linalg.norm([0.08, -0.15, 1.0])
@@ -141,3 +141,35 @@ def test_roi_without_a_part_or_plane_is_one_line_error(scene):
         region_of_interest(plane, views, table_only)
     with pytest.raises(ModelError, match="no support plane"):
         region_of_interest(None, views, points)
+
+
+def _orbit_views(n: int = 12, radius: float = 0.3, height: float = 0.1, target=(0.0, 0.0, 0.04)) -> list[View]:
+    views = []
+    for a in np.linspace(0.0, 2 * np.pi, n, endpoint=False):
+        c = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        z = np.asarray(target) - c
+        z /= np.linalg.norm(z)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = c
+        views.append(View("v", np.zeros((4, 4, 3), np.uint8), np.eye(3), T, 0))
+    return views
+
+
+def test_first_pass_plane_without_table_points_uses_the_known_up():
+    """A first depth pass that sees the part's sides (noisy, from 2 mm up) and scattered junk but not the table:
+    with the world's up known the plane is horizontal, under the part; with up guessed there is no plane."""
+    rng = np.random.default_rng(3)
+    side = rng.uniform(-0.038, 0.038, (6000, 2))
+    h = rng.uniform(0.002, 0.076, 6000)
+    face = rng.integers(0, 4, 6000)
+    x = np.where(face < 2, np.where(face == 0, -0.038, 0.038), side[:, 0])
+    y = np.where(face >= 2, np.where(face == 2, -0.038, 0.038), side[:, 1])
+    part = np.column_stack([x, y, h]) + rng.normal(0.0, 5e-4, (6000, 3))
+    junk = rng.uniform([-0.5, -0.5, -0.3], [0.5, 0.5, 0.3], (600, 3))
+    points = np.concatenate([part, junk])
+    plane = support_plane_from_depth(points, _orbit_views(), np.array([0.0, 0.0, 1.0]), rng)
+    np.testing.assert_allclose(plane.normal, [0.0, 0.0, 1.0], atol=0.02)  # within ~1 deg
+    assert -1e-3 < plane.d_m < 4e-3
