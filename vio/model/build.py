@@ -25,6 +25,7 @@ from vio.model.records import Mesh, Roi, SupportPlane, View
 
 log = logging.getLogger(__name__)
 
+MAX_DEPTH_MAPS = 60  # reference views at most (every k-th still): 60 full-size maps with confidence are 1.4 GB
 SPARSE_MIN_HEIGHT_M = 8e-3  # from landmarks, the part is what stands this far above the support (measured: 3-5 mm
 # let table landmarks with mm-level errors bridge into one cluster with the part on the 20 s orbit)
 
@@ -87,9 +88,10 @@ def model_from_views(
     rng = np.random.default_rng(options.seed)
     cfg = dense.DenseConfig(method=options.dense_method)
     sparse_from_run = sparse_world is not None and len(sparse_world) >= 50
-    if not sparse_from_run:
-        first = dense.depth_maps(views[:: max(1, len(views) // 8)], None, cfg)
-        sparse_world = _depth_points(views[:: max(1, len(views) // 8)], first, 20000, rng)
+    if not sparse_from_run:  # a reduced-resolution pass on a few references, every view a neighbour
+        first_cfg = dense.DenseConfig(method=options.dense_method, max_image_pixels=300_000)
+        first = dense.depth_maps(views, None, first_cfg, references=range(0, len(views), max(1, len(views) // 8)))
+        sparse_world = _depth_points(views, first, 20000, rng)
         t0 = _timed(timings, "first_pass", t0)
     plane = None
     try:
@@ -106,7 +108,8 @@ def model_from_views(
     min_height = SPARSE_MIN_HEIGHT_M if sparse_from_run else 1e-3
     roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world, min_height)
     t0 = _timed(timings, "isolate", t0)
-    maps = dense.depth_maps(views, roi, cfg)
+    step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))  # bounds memory: a 2016x1512 map is 24 MB
+    maps = dense.depth_maps(views, roi, cfg, references=range(0, len(views), step))
     t0 = _timed(timings, "dense", t0)
     volume = fuse.fuse_depth_maps(views, maps, roi, voxel_m=options.voxel_m)
     points, colours = fuse.fused_points(views, maps, volume)
