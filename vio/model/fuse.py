@@ -1,18 +1,21 @@
 """Fuse depth maps into a truncated signed distance field over the region of interest, with free-space carving.
 
-The grid is axis-aligned in the support frame (`Roi.world_T_support`: z up from the plane), voxel centres at
-`origin + index * voxel_m`, with the plane on a voxel boundary. Each voxel is projected into every view (nearest
-pixel). Within the truncation distance of the depth it takes the projective signed distance (depth - voxel z-depth,
-weighted by the depth map's confidence and the cosine of the viewing angle); in front of the depth by more than the
-truncation it gets a free-space vote, behind it by more than the truncation a behind vote; a pixel without depth
-is no evidence either way. The field is then: the weighted average (free votes count as +1) where a surface was
-observed near it; elsewhere inside only with positive evidence, i.e. behind an observed surface in at least one
-view, in at least as many views as saw no depth at its pixel, and seen through by fewer than `min_free_views`
-views (the part's interior, and cavities the cameras cannot see into, such as an undercut slot: every view that
-looks at them sees the part in front); outside otherwise: seen through, or never observed (a table without depth
-stays outside; the part's "shadow" on it is behind the part from one side only, without depth from the other);
-outside below the support plane, so the part's base closes on the plane. Two passes: a coarse grid finds the band
-around the surface and the occupancy elsewhere, then the band alone is fused at `voxel_m`.
+The grid is axis-aligned in the support frame (`Roi.world_T_support`: z up from the plane), voxel centres at `origin
++ index * voxel_m`, with the plane on a voxel boundary. Each voxel is projected into every view (nearest pixel).
+Within the truncation distance of the depth it takes the projective signed distance (depth - voxel z-depth, weighted
+by the depth map's confidence and the cosine of the viewing angle); in front of the depth by more than the
+truncation it gets a free-space vote, behind it by more than the truncation a behind vote; a pixel without depth is
+no evidence either way, except in a small hole of a surface (inside the closing of the known pixels, `hole_px`),
+where a voxel behind the largest depth around the hole is behind it (stereo leaves holes in the faces: without this
+their voxels would be unknown in the views that see the face and dent it). The field is then: the weighted average
+(free votes count as +1) where a surface was observed near it; elsewhere inside only with positive evidence, i.e.
+behind an observed surface in at least one view, in at least as many views as saw no depth at its pixel, and seen
+through by fewer than `min_free_views` views (the part's interior, and cavities the cameras cannot see into, such as
+an undercut slot: every view that looks at them sees the part in front); outside otherwise: seen through, or never
+observed (a table without depth stays outside; the part's "shadow" on it is behind the part from one side only,
+without depth from the other); outside below the support plane, so the part's base closes on the plane. Two passes:
+a coarse grid finds the band around the surface and the occupancy elsewhere, then the band alone is fused at
+`voxel_m`.
 """
 
 from __future__ import annotations
@@ -127,14 +130,30 @@ def prepare_depth(
     return d, weight.astype(np.float32), K
 
 
+def nearest_depth(d: np.ndarray, radius_px: float) -> np.ndarray | None:
+    """The depth image `d` (NaN unknown) with its small holes closed: an unknown pixel inside the morphological
+    closing of the known ones (a square of 2 `radius_px` + 1 pixels; a hole in a surface, not the background
+    beyond a silhouette) takes the largest depth around it; NaN elsewhere. None for a radius under one pixel."""
+    r = int(round(radius_px))
+    if r < 1:
+        return None
+    valid = np.isfinite(d)
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    closed = cv2.erode(cv2.dilate(valid.astype(np.uint8), kernel), kernel, borderValue=1).astype(bool)
+    far = cv2.dilate(np.where(valid, d, np.float32(-np.inf)), kernel)
+    return np.where(valid, d, np.where(closed & np.isfinite(far), far, np.float32(np.nan))).astype(np.float32)
+
+
 def _integrate(
     acc: _Accumulator,
     centres: np.ndarray,
     images: tuple[np.ndarray, np.ndarray, np.ndarray],
     cam_T_support: np.ndarray,
     trunc_m: float,
+    nearest: np.ndarray | None = None,
 ) -> None:
-    """Add one view's observations (`prepare_depth`) of voxel centres (3, N) float32, support frame, to `acc`."""
+    """Add one view's observations (`prepare_depth`) of voxel centres (3, N) float32, support frame, to `acc`.
+    `nearest` (same grid as the depth, `nearest_depth`) closes small holes for the behind test only."""
     d, weight, K = images
     h, w = d.shape
     R = cam_T_support[:3, :3].astype(np.float32)
@@ -157,6 +176,10 @@ def _integrate(
         wt = flat_w.take(pix)
         free = sdf > trunc_m
         behind = sdf < -trunc_m
+        if nearest is not None:  # a hole in a surface: behind the nearest depth around it
+            hole_behind = unknown & (nearest.ravel().take(pix) - z < -trunc_m)
+            behind |= hole_behind
+            unknown &= ~hole_behind
         near = (np.abs(sdf) <= trunc_m) & (wt > 0)
         sl = slice(s, s + c.shape[1])
         acc.free[sl] += free
@@ -175,6 +198,7 @@ def fuse_depth_maps(
     trunc_voxels: float = 4.0,
     min_free_views: int = 2,
     coarse_factor: int = 4,
+    hole_px: float = 8.0,
 ) -> FusedVolume:
     """Fuse depth maps (z-depth per pixel of `views[dm.view]`) into a FusedVolume over `roi` (voxel edge
     `voxel_m` m, truncation `trunc_voxels` voxels). See the module docstring for the rule."""
@@ -205,7 +229,7 @@ def fuse_depth_maps(
         if window is None:
             continue
         images = prepare_depth(view, dm, trunc_m, step, window)
-        _integrate(coarse, centres_c, images, cam_T_support, trunc_c)
+        _integrate(coarse, centres_c, images, cam_T_support, trunc_c, nearest_depth(images[0], hole_px / step))
         prepared.append((dm, view, cam_T_support, window))
     if not prepared:
         raise ModelError("no depth map sees the region of interest")
@@ -224,7 +248,7 @@ def fuse_depth_maps(
     fine = _Accumulator.zeros(centres.shape[1])
     for dm, view, cam_T_support, window in prepared:
         images = prepare_depth(view, dm, trunc_m, 1, window)
-        _integrate(fine, centres, images, cam_T_support, trunc_m)
+        _integrate(fine, centres, images, cam_T_support, trunc_m, nearest_depth(images[0], hole_px))
     tsdf = np.repeat(np.repeat(np.repeat(np.where(sign, 1.0, -1.0).astype(np.float32), f, 0), f, 1), f, 2)
     ii = fine_ijk.astype(np.int64)
     tsdf[ii[:, 0], ii[:, 1], ii[:, 2]] = fine.field(min_free_views)

@@ -110,6 +110,25 @@ def test_missing_depth_is_no_evidence(model):
     assert checks["volume_m3"] == pytest.approx(SIDE_M**3, rel=0.02)
 
 
+def test_holes_in_the_faces_leave_no_dents(model):
+    """Depth holes of several pixels on the faces (stereo completeness well below 100 %) must not carve dents:
+    a voxel under a hole is behind the surface around it, not unknown."""
+    views, maps, volume, _, cad = model
+    rng = np.random.default_rng(3)
+    holed = []
+    for dm in maps:
+        h, w = dm.depth_m.shape
+        blocks = rng.random((h // 6 + 1, w // 6 + 1)) < 0.3
+        mask = np.repeat(np.repeat(blocks, 6, 0), 6, 1)[:h, :w]
+        holed.append(DepthMap(dm.view, np.where(mask, np.nan, dm.depth_m).astype(np.float32)))
+    mesh = mesh_from_volume(fuse_depth_maps(views, holed, volume.roi, voxel_m=VOXEL_M))
+    checks = mesh_checks(mesh)
+    assert checks["watertight"] and checks["pieces"] == 1
+    assert checks["volume_m3"] == pytest.approx(SIDE_M**3, rel=0.01)
+    _, dist, _ = trimesh.proximity.closest_point(cad, mesh.vertices)
+    assert np.percentile(dist, 99) < VOXEL_M and np.sqrt(np.mean(dist**2)) < 0.5 * VOXEL_M
+
+
 def test_bottom_is_closed_on_the_plane(model):
     _, _, volume, mesh, _ = model
     base = to_support(mesh, volume.roi.world_T_support)
