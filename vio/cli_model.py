@@ -26,7 +26,8 @@ def _box(text: str) -> np.ndarray:
 def _cmd_model(args: argparse.Namespace) -> int:
     from vio.model.build import ModelOptions, model_capture, model_from_image_set
 
-    opts = ModelOptions(source=args.source, max_views=args.max_views, voxel_m=args.voxel_mm * 1e-3, roi_world=args.roi)
+    voxel_m = args.voxel_mm * 1e-3
+    opts = ModelOptions(args.source, args.max_views, voxel_m, roi_world=args.roi, adjust=args.adjust)
     if args.middlebury or args.colmap:
         res = model_from_image_set(args.out, opts, middlebury=args.middlebury, colmap=args.colmap, images=args.images)
     else:
@@ -80,6 +81,9 @@ def add_model_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--source", choices=["auto", "stills", "video"], default="auto", help="which images")
     p.add_argument("--max-views", type=int, default=0, help="use at most this many images (0: all)")
     p.add_argument("--voxel-mm", type=float, default=0.4, help="fusion voxel edge, mm")
+    p.add_argument(
+        "--no-adjust", dest="adjust", action="store_false", help="use the poses as given (no bundle adjustment)"
+    )
     p.add_argument("--roi", type=_box, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help="region of interest (world, m)")
     p.add_argument("--middlebury", metavar="PAR_TXT", help="images with known cameras: a Middlebury *_par.txt")
     p.add_argument("--colmap", metavar="MODEL_DIR", help="images with known cameras: a COLMAP text model")

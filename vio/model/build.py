@@ -40,6 +40,7 @@ class ModelOptions:
     margin_m: float = 0.01  # region of interest grown by this much around the part
     roi_world: np.ndarray | None = None  # (2, 3) world min/max corners given by the user (--roi)
     dense_method: str = "sweep"  # sweep | sgbm (vio.model.dense)
+    adjust: bool = True  # bundle-adjust the views (vio.model.adjust) before stereo, anchored to their positions
     seed: int = 0  # RANSAC
 
 
@@ -108,6 +109,12 @@ def model_from_views(
     min_height = SPARSE_MIN_HEIGHT_M if sparse_from_run else 1e-3
     roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world, min_height)
     t0 = _timed(timings, "isolate", t0)
+    adjust_report = None
+    if options.adjust:
+        from vio.model.adjust import adjust_views
+
+        views, adjust_report = adjust_views(views, None)
+        t0 = _timed(timings, "adjust", t0)
     step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))  # bounds memory: a 2016x1512 map is 24 MB
     maps = dense.depth_maps(views, roi, cfg, references=range(0, len(views), step))
     t0 = _timed(timings, "dense", t0)
@@ -138,6 +145,7 @@ def model_from_views(
         "world_T_support": roi.world_T_support.tolist(),
         "roi_support_m": {"lo": roi.lo.tolist(), "hi": roi.hi.tolist()},
         "mesh": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in checks.items()},
+        "adjust": None if adjust_report is None else _plain(adjust_report),
         "timings_s": timings,
         "warnings": warnings,
         **(extra or {}),
@@ -146,6 +154,13 @@ def model_from_views(
     for w in warnings:
         log.warning(w)
     return ModelResult(out, mesh_world, mesh_support, plane, roi, summary)
+
+
+def _plain(record: Any) -> dict[str, Any]:
+    """A dataclass record as JSON-safe numbers and lists."""
+    from dataclasses import asdict
+
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(record).items()}
 
 
 def _depth_points(views: Sequence[View], maps: Sequence[Any], n: int, rng: np.random.Generator) -> np.ndarray:
