@@ -146,25 +146,8 @@ def deviation_colours(signed_mm: np.ndarray, limit_mm: float) -> np.ndarray:
 def ply_bytes(
     vertices: np.ndarray, signed_mm: np.ndarray, colours: np.ndarray, faces: np.ndarray | None, comment: str
 ) -> bytes:
-    """Binary PLY: vertices (V, 3) float32 with RGB and a `deviation_mm` scalar (CloudCompare reads it as a scalar
-    field), and faces (F, 3) if given."""
-    faces = np.zeros((0, 3), np.int64) if faces is None else np.asarray(faces)
-    head = [
-        "ply",
-        "format binary_little_endian 1.0",
-        f"comment {comment}",
-        f"element vertex {len(vertices)}",
-        *(f"property float {c}" for c in "xyz"),
-        *(f"property uchar {c}" for c in ("red", "green", "blue")),
-        "property float deviation_mm",
-    ]
-    if len(faces):
-        head += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
-    head.append("end_header")
-    vdt = np.dtype([("p", "<f4", 3), ("c", "u1", 3), ("d", "<f4")])
-    v = np.empty(len(vertices), vdt)
-    v["p"], v["c"], v["d"] = vertices, colours, signed_mm
-    fdt = np.dtype([("n", "u1"), ("i", "<i4", 3)])
-    f = np.empty(len(faces), fdt)
-    f["n"], f["i"] = 3, faces
-    return ("\n".join(head) + "\n").encode("ascii") + v.tobytes() + f.tobytes()
+    """Binary PLY: vertices (V, 3) with RGB and a `deviation_mm` scalar (CloudCompare reads it as a scalar field),
+    and faces (F, 3) if given."""
+    from vio.writers.mesh import ply_bytes as mesh_ply_bytes
+
+    return mesh_ply_bytes(vertices, faces, colours, True, comment, {"deviation_mm": signed_mm})

@@ -43,9 +43,11 @@ def ply_bytes(
     colours: np.ndarray | None = None,
     binary: bool = True,
     comment: str = "",
+    scalars: dict[str, np.ndarray] | None = None,
 ) -> bytes:
     """PLY 1.0 of vertices (V, 3) (written as float64 `x y z`), optional colours (V, 3) uint8 RGB
-    (`red green blue`) and triangles (F, 3) (`vertex_indices`, int32); binary little-endian or ASCII."""
+    (`red green blue`), optional per-vertex float scalars (name -> (V,), e.g. `deviation_mm`, which CloudCompare
+    reads as a scalar field; float32) and triangles (F, 3) (`vertex_indices`, int32); binary little-endian or ASCII."""
     v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
     f = None if faces is None else np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
     c = None if colours is None else np.ascontiguousarray(colours, dtype=np.uint8).reshape(-1, 3)
@@ -58,15 +60,22 @@ def ply_bytes(
     lines += [f"element vertex {len(v)}", "property double x", "property double y", "property double z"]
     if c is not None:
         lines += ["property uchar red", "property uchar green", "property uchar blue"]
+    s = {k: np.asarray(a, np.float32).reshape(-1) for k, a in (scalars or {}).items()}
+    if any(len(a) != len(v) for a in s.values()):
+        raise ValueError(f"scalars must have one value per vertex ({len(v)})")
+    lines += [f"property float {k}" for k in s]
     if f is not None:
         lines += [f"element face {len(f)}", "property list uchar int vertex_indices"]
     head = ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")
     if binary:
         fields = [("xyz", "<f8", (3,))] + ([("rgb", "u1", (3,))] if c is not None else [])
+        fields += [(f"s_{k}", "<f4") for k in s]
         rec = np.zeros(len(v), dtype=fields)
         rec["xyz"] = v
         if c is not None:
             rec["rgb"] = c
+        for k, a in s.items():
+            rec[f"s_{k}"] = a
         body = rec.tobytes()
         if f is not None:
             frec = np.zeros(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
@@ -76,6 +85,8 @@ def ply_bytes(
     rows = [" ".join(f"{x:.9g}" for x in p) for p in v]
     if c is not None:
         rows = [f"{r} {a} {b} {g}" for r, (a, b, g) in zip(rows, c.tolist(), strict=True)]
+    for a in s.values():
+        rows = [f"{r} {x:.9g}" for r, x in zip(rows, a.tolist(), strict=True)]
     if f is not None:
         rows += [f"3 {a} {b} {g}" for a, b, g in f.tolist()]
     return head + ("\n".join(rows) + "\n").encode("ascii")
