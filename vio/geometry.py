@@ -39,3 +39,18 @@ def skew(v: np.ndarray) -> np.ndarray:
 def rotation_angle_deg(R: np.ndarray) -> float:
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def sample_triangles(tri: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """`count` points uniformly by area on triangles (F, 3, 3): (points (count, 3), face index (count,)).
+
+    Draws, in order: the faces (`rng.choice` weighted by area), then the barycentric pairs (`rng.uniform`, folded
+    into the triangle), so a seed gives the same points wherever this is used."""
+    tri = np.asarray(tri, float)
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    face = rng.choice(len(tri), size=count, p=area / area.sum())
+    a, b = rng.uniform(size=(2, count))
+    fold = a + b > 1.0
+    a[fold], b[fold] = 1.0 - a[fold], 1.0 - b[fold]
+    t = tri[face]
+    return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0]), face

@@ -16,6 +16,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from vio.geometry import sample_triangles
+
 log = logging.getLogger(__name__)
 
 
@@ -208,15 +210,9 @@ def sample_surface(
     """(points (count, 3), unit face normals (count, 3), face index (count,)) sampled uniformly by area on a mesh;
     points in the mesh's frame and units, normals outward for counter-clockwise faces."""
     tri = np.asarray(vertices, float)[np.asarray(faces)]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = np.linalg.norm(cross, axis=1)
-    face = rng.choice(len(tri), size=count, p=area / area.sum())
-    u, v = rng.random(count), rng.random(count)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    t = tri[face]
-    pts = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
-    normals = cross[face] / np.maximum(area[face], 1e-300)[:, None]
+    pts, face = sample_triangles(tri, count, rng)
+    cross = np.cross(tri[face, 1] - tri[face, 0], tri[face, 2] - tri[face, 0])
+    normals = cross / np.maximum(np.linalg.norm(cross, axis=1), 1e-300)[:, None]
     return pts, normals, face
 
 

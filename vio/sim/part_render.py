@@ -21,6 +21,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 from scipy.spatial import cKDTree
 
+from vio.geometry import sample_triangles
 from vio.sim.scene import PlacedPart
 
 LIGHT_DIR_WORLD = np.array([0.45, 0.25, 1.0]) / np.linalg.norm([0.45, 0.25, 1.0])  # towards the light
@@ -53,12 +54,7 @@ class PartSurface:
         lo, hi = np.log(DOT_MIN_MM * 1e-3), np.log(DOT_MAX_MM * 1e-3)
         mean_r2 = (np.exp(2 * hi) - np.exp(2 * lo)) / (2 * (hi - lo))  # E[r^2] of log-uniform radii, m^2
         n = int(np.ceil(DOT_COVER * area_m2.sum() / (np.pi * mean_r2)))
-        face = rng.choice(len(tri), size=n, p=area_m2 / area_m2.sum())
-        a, b = rng.uniform(size=(2, n))
-        fold = a + b > 1.0
-        a[fold], b[fold] = 1.0 - a[fold], 1.0 - b[fold]
-        t = tri[face]
-        self.dot_centres = t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+        self.dot_centres, _ = sample_triangles(tri, n, rng)
         self.dot_radii = np.exp(rng.uniform(lo, hi, n))
         self.tree = cKDTree(self.dot_centres)
 

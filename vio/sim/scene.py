@@ -14,6 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from vio.errors import SimulationError
+from vio.geometry import sample_triangles
 from vio.sim.parts import Part
 
 SURFACES = ("speckle", "plain")  # the part's paint (vio.sim.part_render)
@@ -160,15 +161,9 @@ class Scene:
     def _part_points(self, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """m points uniformly on the part's seen faces and their outward normals, world."""
         tri = self.part.triangles_world()[self.part.seen_faces()]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        area = np.linalg.norm(n, axis=1)
-        face = rng.choice(len(tri), size=m, p=area / area.sum())
-        a, b = rng.uniform(size=(2, m))
-        fold = a + b > 1.0
-        a[fold], b[fold] = 1.0 - a[fold], 1.0 - b[fold]
-        t = tri[face]
-        p = t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
-        return p, n[face] / area[face, None]
+        p, face = sample_triangles(tri, m, rng)
+        n = np.cross(tri[face, 1] - tri[face, 0], tri[face, 2] - tri[face, 0])
+        return p, n / np.linalg.norm(n, axis=1, keepdims=True)
 
     def _under_part(self, p: np.ndarray) -> np.ndarray:
         """(N,) bool: points inside the part's bounding box (support points under its footprint), part frame."""
