@@ -218,3 +218,26 @@ def _read_ply_points(path: Path) -> np.ndarray | None:
     import trimesh
 
     return np.asarray(trimesh.load(str(path)).vertices, float).reshape(-1, 3)
+
+
+def model_from_image_set(
+    out: str | Path,
+    options: ModelOptions = ModelOptions(),
+    middlebury: str | Path | None = None,
+    colmap: str | Path | None = None,
+    images: str | Path | None = None,
+) -> ModelResult:
+    """The part from images with known cameras and no IMU: a Middlebury `*_par.txt`, or a COLMAP text model with
+    its images folder (metric when the cameras are). Without a run's landmarks, the support plane and the part
+    are found from a first depth pass; give `options.roi_world` when the part stands on no plane."""
+    from vio.model.views import views_from_colmap, views_from_middlebury
+
+    if middlebury is not None:
+        views, source = views_from_middlebury(middlebury), {"middlebury": str(middlebury)}
+    elif colmap is not None and images is not None:
+        views, source = views_from_colmap(colmap, images), {"colmap": str(colmap), "images": str(images)}
+    else:
+        raise ModelError("give a Middlebury *_par.txt, or a COLMAP text model with its images folder")
+    if options.max_views and len(views) > options.max_views:
+        views = [views[i] for i in np.linspace(0, len(views) - 1, options.max_views).round().astype(int)]
+    return model_from_views(views, None, out, options, {"source": source, "scale_sigma_rel": None})
