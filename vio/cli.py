@@ -165,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("bench", help="Monte-Carlo drift benchmark against baselines")
-    p.add_argument("--suite", choices=["quick", "full"], default="quick")
+    p.add_argument("--suite", choices=["quick", "full", "drift60", "model", "parts"], default="quick")
     p.add_argument("--out", required=True)
     p.add_argument("--jobs", type=int, default=2)
     p.set_defaults(func=_cmd_bench)

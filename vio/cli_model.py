@@ -33,7 +33,7 @@ def _cmd_model(args: argparse.Namespace) -> int:
     else:
         if args.capture is None:
             raise SystemExit("vio model: error: give a CAPTURE, or --middlebury PAR / --colmap MODEL --images DIR")
-        res = model_capture(args.capture, args.run, args.out, opts)
+        res = model_capture(args.capture, args.run, args.out, opts, positions=args.positions)
     s = res.summary
     mesh = s["mesh"]
     print(
@@ -80,6 +80,7 @@ def add_model_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--source", choices=["auto", "stills", "video"], default="auto", help="which images")
     p.add_argument("--max-views", type=int, default=0, help="use at most this many images (0: all)")
+    p.add_argument("--positions", help="known body positions CSV (t_s,x,y,z,sigma_m) for the run it makes")
     p.add_argument("--voxel-mm", type=float, default=0.4, help="fusion voxel edge, mm")
     p.add_argument(
         "--no-adjust", dest="adjust", action="store_false", help="use the poses as given (no bundle adjustment)"

@@ -211,6 +211,74 @@ def rpe_markdown(rpe: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _spread(values: list[Any], fmt: str = "{:.2f}") -> str:
+    """`median (min-max)` of the finite values, or `-`."""
+    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    if not vals:
+        return "-"
+    med = fmt.format(statistics.median(vals))
+    return med if len(vals) == 1 else f"{med} ({fmt.format(min(vals))}-{fmt.format(max(vals))})"
+
+
+def model_markdown(rows: list[dict[str, Any]]) -> str:
+    """The part-model rows (method kind `model`): one line per run, then medians with their range per part and
+    method. Dimension errors are |measured - nominal| of every face-to-face distance the measure step found."""
+    runs = [r for r in rows if "part" in r and "error" not in r]
+    if not runs:
+        return ""
+    lines = [
+        "",
+        "## Part model (run, model, measure, compare against the CAD)",
+        "",
+        "| part | method | seed | ATE mm | scale err % | scale sigma % | dimensions mm (measured / U95) | "
+        "max abs err mm | within U95 | window mm | std mm | completeness % | watertight | model s | model MiB |",
+        "|---|---|---:|---:|---:|---:|---|---:|---:|---|---:|---:|---|---:|---:|",
+    ]
+    for r in sorted(runs, key=lambda r: (r["part"], method_rank(str(r["method"])), r["seed"])):
+        dists = [d for d in r.get("dims") or [] if d.get("kind") == "distance"]
+        dims = ", ".join(f"{d['measured']:.3f}/{d['U95']:.2f}" for d in dists)
+        scale_err = None if r.get("scale") is None else 100 * (1.0 / r["scale"] - 1.0)
+        sigma = None if r.get("scale_sigma_rel") is None else 100 * r["scale_sigma_rel"]
+        lines.append(
+            f"| {r['part']} | {r['method']} | {r['seed']} | {_fmt(r.get('ate_se3_m'), 'ate_')} | "
+            + ("-" if scale_err is None else f"{scale_err:+.3f}")
+            + f" | {'-' if sigma is None else f'{sigma:.3f}'} | {dims} | "
+            f"{_fmt_mm(r.get('dim_abs_err_max_mm'))} | {r.get('dims_within_u95')} | "
+            f"+{_fmt_mm(r.get('dev_max_pos_mm'))}/{_fmt_mm(r.get('dev_max_neg_mm'))} | {_fmt_mm(r.get('dev_std_mm'))} "
+            f"| {_fmt_mm(None if r.get('completeness') is None else 100 * r['completeness'], 1)} | "
+            f"{r.get('watertight')} | {_fmt_mm(r.get('model_s'), 0)} | {_fmt_mm(r.get('model_peak_rss_mb'), 0)} |"
+        )
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = defaultdict(list)
+    for r in runs:
+        groups[(str(r["part"]), str(r["method"]))].append(r)
+    lines += [
+        "",
+        "Median (min-max) over seeds:",
+        "",
+        "| part | method | runs | median abs dimension error mm | max abs dimension error mm | dimensions within U95 "
+        "| window + mm | window - mm | std mm | completeness % | model s | model MiB |",
+        "|---|---|---:|---|---|---:|---|---|---|---|---|---|",
+    ]
+    for (part, meth), rs in sorted(groups.items(), key=lambda kv: (kv[0][0], method_rank(kv[0][1]))):
+        n_in = sum(int(str(r.get("dims_within_u95") or "0/0").split("/")[0]) for r in rs)
+        n_all = sum(int(str(r.get("dims_within_u95") or "0/0").split("/")[1]) for r in rs)
+        total = sum(1 for r in rows if r.get("part") == part and r.get("method") == meth)
+        lines.append(
+            f"| {part} | {meth} | {len(rs)}/{total} | {_spread([r.get('dim_abs_err_med_mm') for r in rs], '{:.3f}')} "
+            f"| {_spread([r.get('dim_abs_err_max_mm') for r in rs], '{:.3f}')} | {n_in}/{n_all} "
+            f"| {_spread([r.get('dev_max_pos_mm') for r in rs])} | {_spread([r.get('dev_max_neg_mm') for r in rs])} "
+            f"| {_spread([r.get('dev_std_mm') for r in rs], '{:.3f}')} "
+            f"| {_spread([100 * r['completeness'] for r in rs if r.get('completeness') is not None], '{:.1f}')} "
+            f"| {_spread([r.get('model_s') for r in rs], '{:.0f}')} "
+            f"| {_spread([r.get('model_peak_rss_mb') for r in rs], '{:.0f}')} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _fmt_mm(v: float | None, digits: int = 2) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
 def write_reports(
     suite: Any, rows: list[dict[str, Any]], out: Path, wall_s: float | None = None, jobs: int = 0
 ) -> None:
@@ -218,6 +286,7 @@ def write_reports(
     clean = [{k: _clean(v) for k, v in r.items()} for r in rows]
     write_json(out / "results.json", {"runs": clean})
     text = markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs) + rpe_markdown(collect_rpe(out))
+    text += model_markdown(clean)
     write_text(out / "results.md", text)
     if getattr(suite, "plots", True):
         from vio.bench.plots import make_plots

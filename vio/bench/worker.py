@@ -92,7 +92,7 @@ def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dic
     from vio.readers import open_capture
     from vio.trajio import Trajectory
 
-    if method.kind not in ("imu_only", "vio", "vision_only"):
+    if method.kind not in ("imu_only", "vio", "vision_only", "model"):
         raise ValueError(f"unknown method kind {method.kind!r}")
     cap = open_capture(capture, needs=())  # scoring reads the ground truth and the frame span only
     if cap.ground_truth is None:
@@ -100,6 +100,10 @@ def run_method(case: Case, method: Method, capture: Path, out: Path) -> list[dic
     gt = Trajectory.from_groundtruth(cap.ground_truth)
     span_ns = cap.frame_t_ns[-1] - cap.frame_t_ns[0] if cap.num_frames > 1 else gt.t_ns[-1] - gt.t_ns[0]
     duration_s = float(span_ns) * 1e-9
+    if method.kind == "model":
+        from vio.bench.model_method import run_model
+
+        return run_model(case, method, capture, out, lambda o: score(case, o, gt, duration_s, out))
     if method.kind == "imu_only":
         outputs = methods.run_imu_only(capture, out)
     elif method.kind == "vio":
@@ -138,6 +142,7 @@ def main(task_path: str) -> int:
                 imu_grade=case.imu,
                 overwrite=True,
                 images=case.images,
+                **({"part": case.part, "stills_hz": case.stills_hz} if case.stills_hz > 0 else {}),
             )
             result = {"capture": task["capture"]}
         else:

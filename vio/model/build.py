@@ -177,9 +177,14 @@ def _depth_points(views: Sequence[View], maps: Sequence[Any], n: int, rng: np.ra
 
 
 def model_capture(
-    capture: str | Path, run_dir: str | Path | None, out: str | Path, options: ModelOptions = ModelOptions()
+    capture: str | Path,
+    run_dir: str | Path | None,
+    out: str | Path,
+    options: ModelOptions = ModelOptions(),
+    positions: str | Path | None = None,
 ) -> ModelResult:
-    """The part from a capture and its run (`vio run` first, into `out/run`, when `run_dir` is None)."""
+    """The part from a capture and its run (`vio run` first, into `out/run`, when `run_dir` is None; with
+    `positions`, a known-positions CSV that run is anchored to, as `vio run --positions`)."""
     from vio.model.views import views_from_run
     from vio.readers import open_capture
     from vio.trajio import read_trajectory
@@ -191,7 +196,9 @@ def model_capture(
         from vio.pipeline import run_capture
 
         run_dir = out / "run"
-        run_capture(capture, run_dir, load_config(None, ["run.progress=false"]))
+        run_capture(capture, run_dir, load_config(None, ["run.progress=false"]), positions=positions)
+    elif positions is not None:
+        raise ModelError("--positions anchors the run that `vio model` makes itself: give it to `vio run` instead")
     run_dir = Path(run_dir)
     if not (run_dir / "trajectory.tum").is_file():
         raise ModelError(f"{run_dir}: no trajectory.tum (a `vio run` output folder is needed)")
