@@ -179,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_model_commands(sub)
 
+    from vio.cli_calibrate import add_calibrate_commands
+
+    add_calibrate_commands(sub)
+
     p = sub.add_parser("demo", help="simulate the orbit capture, run, evaluate, report")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--duration", type=float, default=30.0)

@@ -144,8 +144,9 @@ def _fmt_matrix(T: np.ndarray) -> str:
     return "  cols: 4\n  rows: 4\n  data: [" + ",\n         ".join(rows) + "]\n"
 
 
-def camera_yaml_text(cam: CameraCalib, comment: str = "vio camera") -> str:
-    """An ASL camera `sensor.yaml` (what `read_camera_yaml` reads back exactly)."""
+def camera_yaml_text(cam: CameraCalib, comment: str = "vio camera", distortion_model: str = "radial-tangential") -> str:
+    """An ASL camera `sensor.yaml` (what `read_camera_yaml` reads back exactly; another `distortion_model`, e.g.
+    equidistant, is written for other tools and refused by vio's reader)."""
     d = ", ".join(f"{v:.12g}" for v in cam.dist)
     return (
         "%YAML:1.0\n"
@@ -155,7 +156,7 @@ def camera_yaml_text(cam: CameraCalib, comment: str = "vio camera") -> str:
         f"resolution: [{cam.width}, {cam.height}]\n"
         "camera_model: pinhole\n"
         f"intrinsics: [{cam.fx:.12g}, {cam.fy:.12g}, {cam.cx:.12g}, {cam.cy:.12g}] # fu, fv, cu, cv\n"
-        "distortion_model: radial-tangential\n"
+        f"distortion_model: {distortion_model}\n"
         f"distortion_coefficients: [{d}]\n"
     )
 
@@ -171,4 +172,45 @@ def imu_yaml_text(imu: ImuCalib, comment: str = "vio imu") -> str:
         f"gyroscope_random_walk: {imu.gyroscope_random_walk:.6e}  # rad/s^2/sqrt(Hz)\n"
         f"accelerometer_noise_density: {imu.accelerometer_noise_density:.6e}  # m/s^2/sqrt(Hz)\n"
         f"accelerometer_random_walk: {imu.accelerometer_random_walk:.6e}  # m/s^3/sqrt(Hz)\n"
+    )
+
+
+def camchain_yaml_text(
+    cam: CameraCalib,
+    distortion_model: str = "radtan",
+    comment: str = "vio camchain",
+    timeshift_s: float | None = None,
+) -> str:
+    """A Kalibr camchain with one camera (`cam0:`): what `read_camchain` reads back (radtan; another
+    `distortion_model`, e.g. equidistant, is written for Kalibr-compatible tools and refused by vio's reader).
+
+    `cam.body_T_cam` is written as Kalibr's `T_cam_imu` (its inverse); `rate_hz` is vio's addition to the section.
+    """
+    d = ", ".join(f"{v:.12g}" for v in cam.dist)
+    rows = "".join("  - [" + ", ".join(f"{v:.12g}" for v in row) + "]\n" for row in inv_T(cam.body_T_cam))
+    text = (
+        "".join(f"# {line}\n" for line in comment.splitlines()) + "cam0:\n"
+        "  camera_model: pinhole\n"
+        f"  intrinsics: [{cam.fx:.12g}, {cam.fy:.12g}, {cam.cx:.12g}, {cam.cy:.12g}]  # fu, fv, pu, pv (px)\n"
+        f"  distortion_model: {distortion_model}\n"
+        f"  distortion_coeffs: [{d}]\n"
+        f"  resolution: [{cam.width}, {cam.height}]\n"
+        f"  rate_hz: {cam.rate_hz:g}\n"
+        "  T_cam_imu:  # the IMU's pose in the camera frame (body_T_cam inverted)\n" + rows
+    )
+    if timeshift_s is not None:
+        text += f"  timeshift_cam_imu: {timeshift_s:.9g}  # s, t_imu = t_cam + shift\n"
+    return text + "  cam_overlaps: []\n  rostopic: /cam0/image_raw\n"
+
+
+def kalibr_imu_yaml_text(imu: ImuCalib, comment: str = "vio imu") -> str:
+    """A Kalibr IMU YAML (`imu.yaml` beside a camchain; continuous-time noise densities and random walks)."""
+    return (
+        "".join(f"# {line}\n" for line in comment.splitlines())
+        + f"accelerometer_noise_density: {imu.accelerometer_noise_density:.6e}  # m/s^2/sqrt(Hz)\n"
+        f"accelerometer_random_walk: {imu.accelerometer_random_walk:.6e}  # m/s^3/sqrt(Hz)\n"
+        f"gyroscope_noise_density: {imu.gyroscope_noise_density:.6e}  # rad/s/sqrt(Hz)\n"
+        f"gyroscope_random_walk: {imu.gyroscope_random_walk:.6e}  # rad/s^2/sqrt(Hz)\n"
+        "rostopic: /imu0\n"
+        f"update_rate: {imu.rate_hz:g}  # Hz\n"
     )
