@@ -212,6 +212,9 @@ class VioEstimator:
             warnings=tuple(self._warnings),
             scale_sigma_rel=None if self._scale is None else self._scale.sigma_rel,
             scale_pairs=() if self._scale is None else self._scale.pairs,
+            keyframe_projections=tuple(
+                (k, t, self.state.projections.get(k, 0)) for k, t in sorted(self.state.t_ns.items())
+            ),
         )
 
     # ----------------------------------------------------------------- steady state

@@ -56,6 +56,7 @@ class GraphState:
         self.pims: dict[int, Any] = {}  # k -> preintegration from the keyframe before k
         self.num_obs: dict[int, int] = {}  # landmark id -> projection factors in the graph
         self.last_obs: dict[int, int] = {}  # landmark id -> last keyframe with a projection factor on it
+        self.projections: dict[int, int] = {}  # keyframe index -> projection factors on its pose (run health)
         self.bias = gtsam.imuBias.ConstantBias()  # latest bias estimate (preintegration uses it)
         self.last_k: int | None = None
         self.dirty = False  # True when the smoother holds estimates not yet pulled into `values`
@@ -95,6 +96,7 @@ class GraphState:
         self.add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.pixel_noise))
         self.num_obs[j] = self.num_obs.get(j, 0) + 1
         self.last_obs[j] = k
+        self.projections[k] = self.projections.get(k, 0) + 1
 
     # ------------------------------------------------------------------ windows
     def window(self, k: int) -> range:

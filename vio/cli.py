@@ -81,7 +81,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
         sinks.append(make_rerun_sink(rrd=args.rrd, serve=args.serve, spawn=args.spawn, port=args.port))
     if args.refine:
         cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, refine=True))
-    run_capture(capture, args.out, cfg, positions=args.positions, sinks=sinks)
+    try:
+        result = run_capture(capture, args.out, cfg, positions=args.positions, sinks=sinks)
+    except KeyboardInterrupt:
+        print(f"vio run: interrupted; nothing kept ({args.out}/run.json says interrupted)", file=sys.stderr)
+        return 130
+    from vio.health import summary_lines
+
+    print("\n".join(summary_lines(result.summary)))
     return 0
 
 

@@ -147,6 +147,16 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class HealthConfig:
+    min_tracked_features: int = (
+        10  # fewer tracked features in a frame: thin tracking (none: lost); gtsam eqvio has 12-40
+    )
+    min_span_s: float = 0.2  # thin or lost tracking shorter than this is not reported, s
+    min_keyframe_projections: int = 1  # a keyframe with fewer projection factors ran on the IMU alone
+    max_skipped_frames: float = 0.1  # fraction of the frames that may fail to decode before the run fails
+
+
+@dataclass(frozen=True)
 class Config:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -160,6 +170,7 @@ class Config:
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     vision_only: VisionOnlyConfig = field(default_factory=VisionOnlyConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

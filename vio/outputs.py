@@ -1,5 +1,6 @@
 """The run's output files, each written atomically: trajectory.tum, states.csv, landmarks.ply, run.json (built
-here from the estimator's stats and the pipeline's counts)."""
+here from the estimator's stats, the pipeline's counts and the run's health; written last, so that a run.json with
+a final status means the other files are this run's)."""
 
 from __future__ import annotations
 
@@ -14,9 +15,11 @@ from vio.atomic import atomic_open, write_json
 from vio.capture import Capture
 from vio.config import Config
 from vio.geometry import R_to_quat_wxyz
+from vio.health import RunHealth
 from vio.records import EstimatorStats, LandmarkMap, StateEstimate
 from vio.trajio import Trajectory, write_tum
 
+RUN_FILES = ("run.json", "trajectory.tum", "trajectory_online.tum", "states.csv", "landmarks.ply")  # what a run writes
 STATES_HEADER = "t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
 
 
@@ -76,6 +79,21 @@ def write_run_json(path: str | Path, summary: dict[str, Any]) -> None:
     write_json(path, summary)
 
 
+def start_run(out: Path) -> None:
+    """Remove the previous run's files (and temporaries a killed run left) from `out`, then write a run.json that
+    says `running`: until the run's own run.json replaces it, nothing in `out` looks like a complete run."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+        for tmp in out.glob(f".{name}.*.tmp"):
+            tmp.unlink(missing_ok=True)
+    write_run_json(out / "run.json", stopped_summary("running", "the run has not finished (or was killed)"))
+
+
+def stopped_summary(status: str, reason: str) -> dict[str, Any]:
+    """run.json of a run that is going on (`running`) or ended without an estimate (`interrupted`, `failed`)."""
+    return {"status": status, "reasons": [reason]}
+
+
 @dataclass(frozen=True)
 class RunCounts:
     """What the pipeline counted and timed over a run."""
@@ -90,12 +108,19 @@ class RunCounts:
 
 
 def run_summary(
-    cap: Capture, cfg: Config, stats: EstimatorStats, counts: RunCounts, refine: dict[str, Any], errors: list[str]
+    cap: Capture,
+    cfg: Config,
+    stats: EstimatorStats,
+    counts: RunCounts,
+    refine: dict[str, Any],
+    errors: list[str],
+    health: RunHealth,
 ) -> dict[str, Any]:
-    """The contents of run.json."""
+    """The contents of run.json (`status` and `reasons` from the run's health, vio/health.py)."""
     tm = np.asarray(stats.keyframe_ms)
     return {
-        "status": "ok" if counts.num_states else "not_initialised",
+        "status": health.status,
+        "reasons": list(health.reasons),
         "capture": str(cap.root),
         "format": cap.format,
         "num_frames": counts.num_frames,
@@ -123,6 +148,7 @@ def run_summary(
             "pairs": [{"k_a": a, "k_b": b, "distance_m": d, "sigma_m": s} for a, b, d, s in stats.scale_pairs],
         },
         "recoveries": [dataclasses.asdict(r) for r in stats.recoveries],
+        "health": health.to_dict(cfg),
         "refine": refine,
         "warnings": list(cap.warnings) + list(stats.warnings) + errors,
         "config": cfg.to_dict(),

@@ -4,8 +4,8 @@ else.
 Frames go through the OpenCV tracker (or precomputed tracks, e.g. gtsam's eqvio file), the keyframe selector
 picks keyframes, the estimator preintegrates the IMU between them and updates the smoother; estimates go to the
 sinks (the rerun viewer is one, built by the command line) and, at the end, `vio.outputs` writes trajectory.tum,
-states.csv, landmarks.ply and run.json in `out`. A tracking loss or a solver exception does not end the run;
-they are counted and reported in run.json.
+states.csv, landmarks.ply and run.json in `out`. A tracking loss, a solver exception or a frame that fails to decode
+does not end the run; `vio.health` reports them in run.json as spans with a cause, and the run's status.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ from vio import outputs
 from vio.atomic import ensure_dir
 from vio.capture import Capture
 from vio.config import Config
-from vio.errors import CaptureError, EstimationError
+from vio.errors import CaptureError, EstimationError, VioError
+from vio.health import HealthMonitor, TooManySkipped
 from vio.records import EstimatorStats, FeatureTracks, Frame, LandmarkMap, StateEstimate
 from vio.sinks import EstimateSink
 
@@ -83,8 +84,9 @@ class _Progress:
 Tracked = tuple[Frame | None, FeatureTracks, np.ndarray]  # (frame or None, tracks, track ages in frames (N,))
 
 
-def _frames_and_tracks(cap: Capture, cfg: Config, stop: int) -> Iterator[Tracked]:
-    """Yield (frame or None, tracks, ages) for every frame: from the tracker, or the capture's own tracks."""
+def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor) -> Iterator[Tracked]:
+    """Yield (frame or None, tracks, ages) for every frame: from the tracker, or the capture's own tracks. A frame
+    whose image fails to decode (or has the wrong size) is skipped with a warning and counted by `monitor`."""
     if cap.tracks is not None:
         first_seen: dict[int, int] = {}
         for i, tr in enumerate(cap.tracks[:stop]):
@@ -94,9 +96,26 @@ def _frames_and_tracks(cap: Capture, cfg: Config, stop: int) -> Iterator[Tracked
     from frontend.tracker import FeatureTracker
 
     tracker = FeatureTracker(cap.camera, cfg.tracker)
-    for frame in cap.frames(0, stop):
+    for i in range(stop):
+        t_ns = int(cap.frame_t_ns[i])
+        try:
+            frame = Frame(t_ns, 0, _image(cap, i))
+        except CaptureError as exc:
+            log.warning("frame %d (t=%d ns) skipped: %s", i, t_ns, exc)
+            monitor.skip(t_ns, str(exc))
+            continue
         tracks = tracker.track(frame)
         yield frame, tracks, tracker.ages()
+
+
+def _image(cap: Capture, i: int) -> np.ndarray:
+    """Frame i's image, checked against the calibration's size (CaptureError when it cannot be used)."""
+    image = cap.load_image(i)
+    cam = cap.camera
+    if cam is not None and image.shape[:2] != (cam.height, cam.width):
+        h, w = image.shape[:2]
+        raise CaptureError(f"frame {i} is {w}x{h}, the calibration is for {cam.width}x{cam.height}", cap.root)
+    return image
 
 
 class _TrackColours:
@@ -139,37 +158,70 @@ def run_capture(
     sinks: Sequence[EstimateSink] = (),
     calib: str | None = None,
 ) -> RunResult:
-    """Estimate the whole capture; writes the four output files into `out` (see vio.outputs) and returns them.
+    """Estimate the whole capture; writes the output files into `out` (see vio.outputs) and returns them.
 
     Sinks receive the calibration, every frame and every estimate as the run goes; they are closed at the end.
+    run.json is written last: while the run goes (or after it was killed) it says `running`, after Ctrl-C
+    `interrupted`, after an error `failed`; the previous run's files in `out` are removed first, so a folder never
+    mixes two runs. A failed run (no estimate, too many frames that do not decode) raises after writing run.json.
     """
-    t_start, cpu_start = time.perf_counter(), time.process_time()
+    out = ensure_dir(out)  # first: a folder in the way fails before any work
+    outputs.start_run(out)
     try:
-        out = ensure_dir(out)  # first: a folder in the way fails before any work
-        cap = open_any(capture, calib)
-        if cap.camera is None or cap.imu is None or cap.imu_calib is None:
-            raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
-        known = None
-        if positions is not None:
-            from vio.readers.positions import read_positions
+        try:
+            result, failure = _run(capture, out, cfg, positions, sinks, calib)
+        finally:
+            for sink in sinks:
+                sink.close()
+    except KeyboardInterrupt:
+        outputs.write_run_json(out / "run.json", outputs.stopped_summary("interrupted", "interrupted by the user"))
+        raise
+    except VioError as exc:
+        outputs.write_run_json(out / "run.json", outputs.stopped_summary("failed", str(exc)))
+        raise
+    if failure is not None:  # run.json already says failed, with the run's health
+        raise failure
+    return result
 
-            known = read_positions(positions)
-        refine = cfg.run.refine  # the batch refinement is decided by the config only
-        for sink in sinks:
-            sink.on_start(cap.camera, cap.imu, cap.ground_truth)
-        pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
-        est = VioEstimator(cap.camera, cap.imu, pre.between, cfg, known)
-        selector = KeyframeSelector(cfg.keyframes)
-        n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
-        stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)
-        bar = _Progress(stop, cfg.run.progress)
-        colours = _TrackColours()
-        errors: list[str] = []
-        n_kf = n_done = 0
-        t_first = t_last = None
-        for n_done, (frame, tracks, ages) in enumerate(_frames_and_tracks(cap, cfg, stop), start=1):
+
+def _run(
+    capture: str | os.PathLike[str] | Capture,
+    out: Path,
+    cfg: Config,
+    positions: str | None,
+    sinks: Sequence[EstimateSink],
+    calib: str | None,
+) -> tuple[RunResult, VioError | None]:
+    """The run (see run_capture); a failure is returned with the result (run.json written), not raised."""
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    cap = open_any(capture, calib)
+    if cap.camera is None or cap.imu is None or cap.imu_calib is None:
+        raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
+    known = None
+    if positions is not None:
+        from vio.readers.positions import read_positions
+
+        known = read_positions(positions)
+    refine = cfg.run.refine  # the batch refinement is decided by the config only
+    for sink in sinks:
+        sink.on_start(cap.camera, cap.imu, cap.ground_truth)
+    pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
+    est = VioEstimator(cap.camera, cap.imu, pre.between, cfg, known)
+    selector = KeyframeSelector(cfg.keyframes)
+    n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
+    stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)
+    bar = _Progress(stop, cfg.run.progress)
+    colours = _TrackColours()
+    monitor = HealthMonitor(cfg, stop)
+    errors: list[str] = []
+    failure, kind = "", EstimationError
+    n_kf = n_done = 0
+    t_first = t_last = None
+    try:
+        for n_done, (frame, tracks, ages) in enumerate(_frames_and_tracks(cap, cfg, stop, monitor), start=1):
             t_first = tracks.t_ns if t_first is None else t_first
             t_last = tracks.t_ns
+            monitor.frame(tracks.t_ns, len(tracks.ids))
             if frame is not None:
                 colours.see(frame, tracks)
                 for sink in sinks:
@@ -191,27 +243,37 @@ def run_capture(
                         for sink in sinks:
                             sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(live)})
             bar.update(n_done, n_kf)
-        bar.close()
-        online_states = est.states() if refine else []  # kept beside the refined answer, for comparison
-        refine_info = est.finish(refine)
-        states, landmarks, stats = est.states(), est.landmarks(), est.stats()
-        wall = time.perf_counter() - t_start
-        span_s = (t_last - t_first) * 1e-9 if t_first is not None else 0.0
-        summary = outputs.run_summary(
-            cap,
-            cfg,
-            stats,
-            outputs.RunCounts(n_done, n_kf, len(states), len(landmarks), span_s, wall, time.process_time() - cpu_start),
-            refine_info,
-            errors,
-        )
-        outputs.write_run_json(out / "run.json", summary)
+    except TooManySkipped as exc:
+        failure, kind = f"{cap.root}: {exc}", CaptureError
     finally:
-        for sink in sinks:
-            sink.close()
-    if not states:
-        raise EstimationError(f"{cap.root}: the estimator never initialised ({n_kf} keyframes); see {out / 'run.json'}")
+        bar.close()
+    online_states = est.states() if refine and not failure else []  # kept beside the refined answer
+    refine_info = est.finish(refine and not failure)
+    states, landmarks, stats = est.states(), est.landmarks(), est.stats()
+    if not states and not failure:
+        failure, kind = f"{cap.root}: the estimator never initialised ({n_kf} keyframes)", EstimationError
+    health = monitor.report(stats, [s.t_ns for s in states], cap.imu, failure)
+    for sink in sinks:
+        on_health = getattr(sink, "on_health", None)
+        if on_health is not None:
+            on_health(health)
+    wall = time.perf_counter() - t_start
+    span_s = (t_last - t_first) * 1e-9 if t_first is not None else 0.0
+    summary = outputs.run_summary(
+        cap,
+        cfg,
+        stats,
+        outputs.RunCounts(n_done, n_kf, len(states), len(landmarks), span_s, wall, time.process_time() - cpu_start),
+        refine_info,
+        errors,
+        health,
+    )
+    result = RunResult(out, summary, stats, states, landmarks)
+    if failure:
+        outputs.write_run_json(out / "run.json", summary)
+        return result, kind(f"{failure}; see {out / 'run.json'}")
     outputs.write_estimate(out, states, online_states, landmarks, colours.of(landmarks.track_ids))
+    outputs.write_run_json(out / "run.json", summary)  # last: a run.json with a final status means complete
     scale = "" if stats.scale_sigma_rel is None else f", scale sigma {100 * stats.scale_sigma_rel:.2f} % (graph)"
     log.info(
         "%d keyframes, %d landmarks, %.1f s wall (%.2fx real time), %d recoveries%s",
@@ -222,4 +284,4 @@ def run_capture(
         len(stats.recoveries),
         scale,
     )
-    return RunResult(out, summary, stats, states, landmarks)
+    return result, None

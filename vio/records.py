@@ -230,3 +230,6 @@ class EstimatorStats:
     warnings: tuple[str, ...]
     scale_sigma_rel: float | None = None  # relative standard deviation of the metric scale, from the graph
     scale_pairs: tuple[tuple[int, int, float, float], ...] = ()  # (k_a, k_b, distance m, its sigma m) behind it
+    # (k, t_ns, projection factors on the keyframe's pose in the whole graph) per keyframe, in time order; 0: the
+    # keyframe's pose rests on the IMU (or the vision-only motion model) alone
+    keyframe_projections: tuple[tuple[int, int, int], ...] = ()

@@ -21,5 +21,7 @@ class EstimateSink(Protocol):
     def on_estimate(self, estimate: StateEstimate, stats: dict[str, Any]) -> None:
         """Every keyframe estimate; stats holds e.g. `solve_ms`, `reproj_px_median`, `num_landmarks`."""
 
+    # Optional: `on_health(health: vio.health.RunHealth)`, once after the last keyframe, before `close`.
+
     def close(self) -> None:
         """After the last keyframe."""

@@ -91,7 +91,8 @@ def test_too_short_to_initialise_writes_run_json_and_fails_cleanly(tmp_path):
     cfg = load_config(None, [*EQVIO_SET, "run.max_frames=6"])
     with pytest.raises(EstimationError, match="never initialised"):
         run_capture(read_eqvio(), tmp_path, cfg)
-    assert json.loads((tmp_path / "run.json").read_text())["status"] == "not_initialised"
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["status"] == "failed" and "never initialised" in run["reasons"][0]
     assert not (tmp_path / "trajectory.tum").exists()
 
 
@@ -102,6 +103,7 @@ def test_cli_run_smoke(tmp_path):
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     assert (tmp_path / "trajectory.tum").exists() and (tmp_path / "landmarks.ply").exists()
+    assert res.stdout.startswith("status: ok - ")  # the printed summary
 
 
 def test_whole_euroc_file_meets_the_targets_online_and_in_batch(tmp_path):

@@ -129,6 +129,30 @@ def _trim_to_imu(cap: Capture, source: Path) -> str | None:
     return None
 
 
+SIZE_CHECK_FRAMES = 10  # the image size is read from the first of this many frames that decodes
+
+
+def _image_size_problems(cap: Capture, source: Path) -> list[str]:
+    """The image size against the calibration's, from the first frame that decodes (a frame that does not decode is
+    skipped by `vio run`; when none of the first few decode, that is the problem)."""
+    assert cap.camera is not None
+    first_error = None
+    for i in range(min(cap.num_frames, SIZE_CHECK_FRAMES)):
+        try:
+            img = cap.load_image(i)
+        except CaptureError as exc:
+            first_error = first_error or str(exc)
+            continue
+        h, w = img.shape[:2]
+        c = cap.camera
+        if (w, h) == (c.width, c.height):
+            return []
+        rotated = " (rotated video?)" if (h, w) == (c.width, c.height) else ""
+        return [f"{source}: images are {w}x{h} but the calibration is for {c.width}x{c.height}{rotated}"]
+    n = min(cap.num_frames, SIZE_CHECK_FRAMES)
+    return [f"{source}: none of the first {n} images can be decoded (first: {first_error})"]
+
+
 def finish_capture(
     cap: Capture, source: Path, strict: bool = True, needs: Collection[str] = ("camera", "imu")
 ) -> list[str]:
@@ -156,18 +180,8 @@ def finish_capture(
     if imu and cap.imu is not None and cap.imu_calib is None:
         cap.imu_calib = PHONE_IMU_DEFAULT
         cap.warn(f"{source}: no IMU noise calibration; assuming phone-grade defaults {PHONE_IMU_DEFAULT}")
-    if camera and cap.num_frames > 0 and cap.camera is not None and cap.tracks is None and not errors:
-        img = cap.load_image(0)
-        h, w = img.shape[:2]
-        if (w, h) != (cap.camera.width, cap.camera.height):
-            errors.append(
-                (
-                    CalibrationError,
-                    f"{source}: images are {w}x{h} but the calibration is for "
-                    f"{cap.camera.width}x{cap.camera.height}"
-                    + (" (rotated video?)" if (h, w) == (cap.camera.width, cap.camera.height) else ""),
-                )
-            )
+    if camera and cap.num_frames > 0 and cap.camera is not None and cap.tracks is None:
+        errors += [(CalibrationError, m) for m in _image_size_problems(cap, source)]
     if strict and errors:
         cls, msg = errors[0]
         raise cls(msg)

@@ -8,7 +8,8 @@ Entity tree (world is z-up; the camera frame is OpenCV's x right, y down, z forw
   world/trajectory/estimate      LineStrips3D of the estimated body positions so far
   world/trajectory/ground_truth  LineStrips3D of the ground-truth body positions (static), when the capture has it
   world/landmarks                Points3D, landmarks coloured by height
-  plots/...                      Scalars time series (IMU, velocity, biases, solver)
+  plots/...                      Scalars time series (IMU, velocity, biases, solver, tracked features)
+  health                         TextLog: the run's health spans (at their start) and its status (at the end)
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ GT = "ground_truth"  # leaf name of a ground-truth series under a plot
 SOLVE_MS = f"{PLOT_SOLVER}/solve_ms"
 REPROJ_PX = f"{PLOT_SOLVER}/reproj_px_median"
 NUM_LANDMARKS = f"{PLOT_SOLVER}/num_landmarks"
+NUM_TRACKED = f"{PLOT_SOLVER}/num_tracked"
+HEALTH = "health"
 
 
 IMU_WINDOW_S = 10.0  # the IMU plots show this much history before the time cursor
@@ -64,6 +67,8 @@ def default_blueprint() -> rrb.Blueprint:
         _series(SOLVE_MS, "solve time (ms)"),
         _series(REPROJ_PX, "reprojection error (px)"),
         _series(NUM_LANDMARKS, "landmarks"),
+        _series(NUM_TRACKED, "tracked features"),
+        rrb.TextLogView(origin=HEALTH, name="run health"),
         grid_columns=2,
     )
     right = rrb.Vertical(rrb.Spatial2DView(origin=IMAGE, name="camera"), series, row_shares=[2, 3])

@@ -3,7 +3,8 @@
 `make_rerun_sink(rrd=..., serve=..., spawn=...)` returns a `RerunSink` (a `vio.sinks.EstimateSink`) that logs on the
 `sensor_time` timeline: the camera (Pinhole + world_T_cam), the current image (downscaled JPEG) with its tracked
 features coloured by track age, the estimated trajectory beside the ground truth, landmarks, IMU signals, velocity,
-biases and solver statistics. Frames: world z-up; camera OpenCV; world_T_cam = world_T_body @ body_T_cam.
+biases, solver statistics, the number of tracked features and, at the end, the run's health (vio/health.py).
+Frames: world z-up; camera OpenCV; world_T_cam = world_T_body @ body_T_cam.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import rerun as rr
 
 from vio.atomic import ensure_dir
 from vio.errors import VioError
+from vio.health import RunHealth, describe_span
 from vio.records import CameraCalib, Frame, GroundTruth, ImuSeries, StateEstimate
 from vio.viz import blueprint as bp
 from vio.viz.geometry import anchor_yaw_translation, reprojection_errors_px
@@ -73,6 +75,7 @@ class RerunSink:
         self._gt: GroundTruth | None = None  # logged at the first estimate, anchored in the estimate's world
         self._tracks: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # t_ns -> (ids, uv) recent
         self._closed = False
+        self._last_t_ns: int | None = None  # the last frame's time, ns
 
     def _set_time(self, t_ns: int) -> None:
         self.rec.set_time(bp.TIMELINE, timestamp=np.datetime64(int(t_ns), "ns"))
@@ -128,6 +131,7 @@ class RerunSink:
         self.rec.log(bp.SOLVE_MS, rr.SeriesLines(names="solve ms", colors=[200, 120, 0]), static=True)
         self.rec.log(bp.REPROJ_PX, rr.SeriesLines(names="median px", colors=[150, 0, 200]), static=True)
         self.rec.log(bp.NUM_LANDMARKS, rr.SeriesLines(names="landmarks", colors=[0, 150, 150]), static=True)
+        self.rec.log(bp.NUM_TRACKED, rr.SeriesLines(names="tracked", colors=[60, 160, 60]), static=True)
 
     def on_frame(self, frame: Frame, ids: np.ndarray, uv: np.ndarray, ages: np.ndarray) -> None:
         """The downscaled JPEG image and its tracked features (distorted px), coloured by age in frames."""
@@ -143,6 +147,8 @@ class RerunSink:
         uv_rr = (np.asarray(uv, float).reshape(-1, 2) + 0.5) * self._scale
         colors = _colormap(ages, 0.0, AGE_SATURATION_FRAMES, cv2.COLORMAP_VIRIDIS)
         self.rec.log(bp.FEATURES, rr.Points2D(uv_rr, colors=colors, radii=FEATURE_RADIUS))
+        self.rec.log(bp.NUM_TRACKED, rr.Scalars(float(len(ids))))
+        self._last_t_ns = int(frame.t_ns)
         self._tracks[int(frame.t_ns)] = (np.asarray(ids), np.asarray(uv, float).reshape(-1, 2))
         while len(self._tracks) > TRACKS_KEPT:
             self._tracks.popitem(last=False)
@@ -175,6 +181,15 @@ class RerunSink:
         if reproj is not None and np.isfinite(reproj):
             rec.log(bp.REPROJ_PX, rr.Scalars(float(reproj)))
         rec.log(bp.NUM_LANDMARKS, rr.Scalars(float(stats.get("num_landmarks", pts.shape[0]))))
+
+    def on_health(self, health: RunHealth) -> None:
+        """Each health span as a warning at its start time, and the run's status at the last frame's time."""
+        for span in health.spans:
+            self._set_time(span.start_t_ns)
+            self.rec.log(bp.HEALTH, rr.TextLog(describe_span(span, health.t0_ns), level=rr.TextLogLevel.WARN))
+        self._set_time(self._last_t_ns if self._last_t_ns is not None else health.t0_ns)
+        level = {"ok": rr.TextLogLevel.INFO, "degraded": rr.TextLogLevel.WARN}.get(health.status, rr.TextLogLevel.ERROR)
+        self.rec.log(bp.HEALTH, rr.TextLog(f"status: {health.status}", level=level))
 
     def _anchor(self, t_ns: int, est_world_T_body: np.ndarray) -> np.ndarray | None:
         """est_world_T_gt_world from the ground-truth sample nearest t_ns; None (drawn as is) if none is close."""

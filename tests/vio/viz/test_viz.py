@@ -222,6 +222,24 @@ def test_reprojection_error_is_logged_on_a_real_run(sim_capture, tmp_path):
     assert np.isfinite(values).all()
     assert values[0] < 1.0  # at initialisation the landmarks are triangulated from the same poses
     assert np.median(values) < 15.0
+    tracked = read_column(rrd, bp.NUM_TRACKED, "Scalars:scalars")
+    assert len(tracked) == result.summary["num_frames"] and max(v[0] for v in tracked) > 100
+    assert [t[0] for t in read_column(rrd, bp.HEALTH, "TextLog:text")] == [f"status: {result.summary['status']}"]
+
+
+def test_health_spans_are_logged_at_their_start(tmp_path):
+    from vio.health import HealthSpan, RunHealth
+    from vio.viz import blueprint as bp
+    from vio.viz.rerun_sink import make_rerun_sink
+
+    rrd = tmp_path / "health.rrd"
+    sink = make_rerun_sink(rrd=rrd)
+    sink.on_start(None, None, None)
+    span = HealthSpan("tracking_lost", 3_000_000_000, 4_000_000_000, "no tracked features in 20 frames")
+    sink.on_health(RunHealth("degraded", ("x",), (span,), 1_000_000_000, 0, {"min": 0.0, "median": 150.0}))
+    sink.close()
+    texts = [t[0] for t in read_column(rrd, bp.HEALTH, "TextLog:text")]
+    assert texts == ["status: degraded", "tracking lost 2.00-3.00 s (1.00 s): no tracked features in 20 frames"]
 
 
 def test_default_blueprint_is_in_the_recording(recording):
@@ -229,7 +247,7 @@ def test_default_blueprint_is_in_the_recording(recording):
         [str(RERUN), "rrd", "print", "-v", str(recording)], capture_output=True, text=True, timeout=120
     )
     assert "Blueprint" in res.stdout
-    assert res.stdout.count("ViewBlueprint:class") >= 10  # 3D, camera and 8 time series views
+    assert res.stdout.count("ViewBlueprint:class") >= 12  # 3D, camera, 9 time series views and the health log
 
 
 def test_feature_colours_follow_track_age():
