@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from vio.capture import Capture
+from vio.errors import VioError
 
 
 def _rate(t_ns: np.ndarray) -> tuple[float, float]:
@@ -35,7 +37,27 @@ def _gaps(t_ns: np.ndarray, factor: float) -> str:
     return f"{int(big.sum())} longer than {factor:g}x nominal, largest {dt.max() * 1e-6:.1f} ms"
 
 
-def describe(cap: Capture, offset: bool = True) -> list[str]:
+def _offset_lines(cap: Capture) -> list[str]:
+    """The camera-IMU time offset estimated from rotation rates (readers/offset.py)."""
+    from vio.readers.offset import estimate_time_offset
+
+    try:
+        est = estimate_time_offset(cap)
+    except VioError as exc:  # e.g. an image that does not decode: reported, the rest of the summary stands
+        return [f"camera-IMU time offset: not estimated ({exc})"]
+    if est.offset_ns is None:
+        return [f"camera-IMU time offset: not estimated ({est.note})"]
+    return [
+        f"camera-IMU time offset: {est.offset_ns * 1e-6:+.1f} ms (t_imu = t_cam + offset, Kalibr's "
+        f"timeshift_cam_imu; correlation {est.correlation:.2f} over {est.pairs} frame pairs)"
+        + (f" [{est.note}]" if est.note else ""),
+        f"  image rotation rate / gyro rate: {est.rate_ratio:.3f} (1: consistent; 0.017: gyro in deg/s)",
+    ]
+
+
+def describe(cap: Capture, offset: bool = True, problems: Sequence[str] = ()) -> list[str]:
+    """The lines of `vio info`: streams, rates, spans, gaps, clock overlap, time offset; then every problem that
+    would stop `vio run` (`problems`) and the warnings."""
     lines = [f"capture: {cap.root} (format: {cap.format})"]
     if cap.num_frames:
         rate, med = _rate(cap.frame_t_ns)
@@ -88,29 +110,23 @@ def describe(cap: Capture, offset: bool = True) -> list[str]:
     if cap.ground_truth is not None:
         lines.append(f"ground truth: {len(cap.ground_truth)} poses, span {_span(cap.ground_truth.t_ns)}")
     if offset and cap.num_frames >= 10 and cap.imu is not None and cap.tracks is None:
-        from vio.readers.offset import estimate_time_offset
-
-        est = estimate_time_offset(cap)
-        if est.offset_ns is None:
-            lines.append(f"camera-IMU time offset: not estimated ({est.note})")
-        else:
-            lines.append(
-                f"camera-IMU time offset: {est.offset_ns * 1e-6:+.1f} ms (t_imu = t_cam + offset, Kalibr's "
-                f"timeshift_cam_imu; correlation {est.correlation:.2f} over {est.pairs} frame pairs)"
-                + (f" [{est.note}]" if est.note else "")
-            )
-            lines.append(
-                f"  image rotation rate / gyro rate: {est.rate_ratio:.3f} (1: consistent; 0.017: gyro in deg/s)"
-            )
+        lines += _offset_lines(cap)
+    if problems:
+        lines.append(f"problems: {len(problems)} (vio run stops at the first)")
+        lines += [f"  error: {p}" for p in problems]
     for w in cap.warnings:
         lines.append(f"warning: {w}")
     return lines
 
 
 def capture_info(path: str | os.PathLike[str], calib: str | os.PathLike[str] | None = None) -> str:
-    """A human-readable summary of a capture. Errors that would stop `vio run` are listed, not raised, except when
-    the capture cannot be read at all (then the CaptureError propagates: one line on the command line)."""
-    from vio.readers import open_capture
+    """A human-readable summary of a capture. Every error that would stop `vio run` is listed, not raised (an ASL
+    stream that cannot be read is left out and its error listed), except when the capture cannot be read at all
+    (then the error propagates: one line on the command line)."""
+    from vio.readers import read_capture
+    from vio.readers.validate import finish_capture
 
-    cap = open_capture(Path(path), calib, strict=False)
-    return "\n".join(describe(cap))
+    problems: list[str] = []
+    cap = read_capture(Path(path), calib, problems)
+    problems += finish_capture(cap, Path(path), strict=False)
+    return "\n".join(describe(cap, problems=problems))

@@ -91,3 +91,40 @@ def test_info_on_gtsams_eqvio_tracks():
     text = capture_info(gtsam.findExampleDataFile("eqvio_processed_30s.csv"))
     assert "format: eqvio" in text and "601 frames of precomputed feature tracks" in text
     assert "6001 samples, 200.0 Hz" in text and "time offset" not in text
+
+
+def test_info_reports_every_problem_not_only_the_first(sim_capture, tmp_path):
+    """Issue 20: an accelerometer without gravity, a calibration for another image size, a ground-truth file with a
+    NaN and an image that does not decode: all four are listed, and the rest of the summary stands."""
+    import os
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(sim_capture("orbit", 4.0), cap, copy_function=os.link)
+    mav0 = cap / "mav0"
+    imu_csv = mav0 / "imu0" / "data.csv"
+    lines = imu_csv.read_text().splitlines()
+    rows = np.array([r.split(",") for r in lines[1:]], float)
+    rows[:, 4:7] = 0.5 * (rows[:, 4:7] - np.median(rows[:, 4:7], axis=0))  # linear acceleration: no gravity
+    imu_csv.unlink()
+    imu_csv.write_text(lines[0] + "\n" + "\n".join(f"{int(r[0])}," + ",".join(f"{v:.9g}" for v in r[1:]) for r in rows))
+    yaml_path = mav0 / "cam0" / "sensor.yaml"
+    text = yaml_path.read_text().replace("resolution: [640, 480]", "resolution: [1280, 960]")
+    yaml_path.unlink()
+    yaml_path.write_text(text)
+    gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    gt = gt_csv.read_text().splitlines()
+    gt[5] = ",".join([gt[5].split(",")[0], "nan", *gt[5].split(",")[2:]])
+    gt_csv.unlink()
+    gt_csv.write_text("\n".join(gt) + "\n")
+    first = sorted((mav0 / "cam0" / "data").iterdir())[0]
+    first.unlink()
+    first.write_bytes(b"not a png")
+    r = subprocess.run([sys.executable, "-m", "vio.cli", "info", str(cap)], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    out = r.stdout
+    assert "problems: 3 (vio run stops at the first)" in out, out
+    assert "NaN in ground truth" in out and "accelerometer has no gravity" in out
+    assert "images are 640x480 but the calibration is for 1280x960" in out
+    assert "camera: 80 frames" in out and "imu: " in out  # the readable streams are still described
+    assert "camera-IMU time offset: not estimated" in out and "cannot be decoded" in out

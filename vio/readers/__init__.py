@@ -62,14 +62,20 @@ def detect_format(path: Path) -> str:
     )
 
 
-def read_capture(path: str | os.PathLike[str], calib: str | os.PathLike[str] | None = None, **topics: str) -> Capture:
-    """Read a capture in any supported format without the final checks (see `open_capture`)."""
+def read_capture(
+    path: str | os.PathLike[str],
+    calib: str | os.PathLike[str] | None = None,
+    problems: list[str] | None = None,
+    **topics: str,
+) -> Capture:
+    """Read a capture in any supported format without the final checks (see `open_capture`). With a `problems`
+    list, an ASL/EuRoC stream that cannot be read is left out and its error appended there (other formats raise)."""
     path = Path(path)
     fmt = detect_format(path)
     if fmt in ("asl", "tumvi"):
         from vio.readers.asl import open_asl
 
-        return open_asl(path, calib)
+        return open_asl(path, calib, problems)
     if fmt in ("ros1", "ros2"):
         from vio.readers.rosbag import read_bag
 
@@ -114,8 +120,9 @@ def open_capture(
     from vio.readers.validate import finish_capture
 
     topics = {k: v for k, v in (("image_topic", image_topic), ("imu_topic", imu_topic)) if v}
-    cap = read_capture(path, calib, **topics)
-    for msg in finish_capture(cap, Path(path), strict=strict, needs=needs):
+    problems: list[str] | None = None if strict else []
+    cap = read_capture(path, calib, problems, **topics)
+    for msg in [*(problems or []), *finish_capture(cap, Path(path), strict=strict, needs=needs)]:
         cap.warn(msg)
     return cap
 

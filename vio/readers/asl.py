@@ -16,12 +16,13 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from vio.capture import Capture, Stills
-from vio.errors import CalibrationError, CaptureError
+from vio.errors import CalibrationError, CaptureError, VioError
 from vio.kalibr import read_camera_yaml, read_imu_yaml
 from vio.readers.calib import find_calibration, load_calibration
 from vio.readers.common import FRAME_GAP_FACTOR, imu_from_table
@@ -30,6 +31,7 @@ from vio.readers.validate import gap_warnings
 from vio.records import CameraCalib, GroundTruth, ImuSeries
 
 GT_LAYOUT = "t_ns, p, q_wxyz, v, b_w, b_a"
+T = TypeVar("T")
 
 
 def read_imu_csv(path: Path, warnings: list[str] | None = None) -> ImuSeries:
@@ -100,19 +102,38 @@ def _frames(cam_csv: Path, warnings: list[str]) -> tuple[np.ndarray, list[Path]]
     return table.t_ns, [data_dir / n for n, k in zip(names, keep, strict=True) if k]
 
 
-def read_asl(root: str | os.PathLike[str]) -> Capture:
-    """Read an ASL/EuRoC capture folder (the folder holding `mav0/`, or `mav0/` itself) with its own calibration."""
+def _stream(read: Callable[[], T], default: T, problems: list[str] | None) -> T:
+    """One stream of the capture: its reader's error raises, or (when collecting `problems`) is kept and the stream
+    left out, so that every unreadable stream is reported, not only the first."""
+    if problems is None:
+        return read()
+    try:
+        return read()
+    except VioError as exc:
+        problems.append(str(exc))
+        return default
+
+
+def read_asl(root: str | os.PathLike[str], problems: list[str] | None = None) -> Capture:
+    """Read an ASL/EuRoC capture folder (the folder holding `mav0/`, or `mav0/` itself) with its own calibration.
+
+    With a `problems` list, a stream that cannot be read is left out and its error appended there (`vio info`)."""
     root = Path(root)
     mav0 = find_mav0(root)
     warnings: list[str] = []
-    camera = read_camera_yaml(mav0 / "cam0" / "sensor.yaml") if (mav0 / "cam0" / "sensor.yaml").exists() else None
-    imu_calib = read_imu_yaml(mav0 / "imu0" / "sensor.yaml") if (mav0 / "imu0" / "sensor.yaml").exists() else None
-    imu = read_imu_csv(mav0 / "imu0" / "data.csv", warnings) if (mav0 / "imu0" / "data.csv").exists() else None
+    cam_yaml, imu_yaml, imu_csv = (
+        mav0 / "cam0" / "sensor.yaml",
+        mav0 / "imu0" / "sensor.yaml",
+        mav0 / "imu0" / "data.csv",
+    )
+    camera = _stream(lambda: read_camera_yaml(cam_yaml), None, problems) if cam_yaml.exists() else None
+    imu_calib = _stream(lambda: read_imu_yaml(imu_yaml), None, problems) if imu_yaml.exists() else None
+    imu = _stream(lambda: read_imu_csv(imu_csv, warnings), None, problems) if imu_csv.exists() else None
     frame_t, paths = np.zeros(0, np.int64), []
     if (mav0 / "cam0" / "data.csv").exists():
-        frame_t, paths = _frames(mav0 / "cam0" / "data.csv", warnings)
+        frame_t, paths = _stream(lambda: _frames(mav0 / "cam0" / "data.csv", warnings), (frame_t, paths), problems)
     gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
-    gt = read_groundtruth_csv(gt_csv) if gt_csv.exists() else None
+    gt = _stream(lambda: read_groundtruth_csv(gt_csv), None, problems) if gt_csv.exists() else None
     scene = root / "scene" if (root / "scene").is_dir() else None
     fmt = "tumvi" if (mav0 / "mocap0").is_dir() or (root / "dso").is_dir() else "asl"
     cap = Capture(root, camera, imu_calib, imu, frame_t, _loader(paths), gt, scene, [], fmt)
@@ -146,9 +167,10 @@ def _stills(mav0: Path, video: CameraCalib | None, warnings: list[str]) -> Still
     return Stills(cam, t_ns, _loader(paths))
 
 
-def open_asl(root: Path, calib: str | Path | None = None) -> Capture:
-    """Read an ASL/EuRoC or TUM-VI folder; `calib` (a camchain YAML or ASL folder) replaces its calibration."""
-    cap = read_asl(root)
+def open_asl(root: Path, calib: str | Path | None = None, problems: list[str] | None = None) -> Capture:
+    """Read an ASL/EuRoC or TUM-VI folder; `calib` (a camchain YAML or ASL folder) replaces its calibration.
+    `problems`: see `read_asl`."""
+    cap = read_asl(root, problems)
     if calib is not None:
         cal = load_calibration(calib)
     elif cap.camera is None:
