@@ -1,5 +1,5 @@
-"""The calibration commands of the command line: `vio calibrate camera` (thin over vio.calibrate).
-The IMU and camera-IMU calibrations (issue 17) are not implemented yet."""
+"""The calibration commands of the command line: `vio calibrate camera`, `vio calibrate imu` (thin over
+vio.calibrate). The camera-IMU calibration (issue 17's third part) is not implemented yet."""
 
 from __future__ import annotations
 
@@ -24,8 +24,15 @@ def _cmd_camera(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_imu(args: argparse.Namespace) -> int:
+    from vio.calibrate.imu_files import calibrate_imu_files
+
+    print(calibrate_imu_files(args.log, args.out, inflation=args.inflation))
+    return 0
+
+
 def add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
-    """Register `vio calibrate camera` on the top-level subcommands."""
+    """Register `vio calibrate camera|imu` on the top-level subcommands."""
     cal = sub.add_parser("calibrate", help="camera intrinsics (board), IMU noise (Allan deviation); Kalibr YAML out")
     csub = cal.add_subparsers(dest="what", metavar="WHAT", required=True)
 
@@ -54,3 +61,14 @@ def add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--rate", type=float, default=None, help="camera frame rate, Hz (default: the video's, or 30)")
     p.set_defaults(func=_cmd_camera)
+
+    p = csub.add_parser("imu", help="IMU noise (Allan deviation) from a static log")
+    p.add_argument("log", metavar="STATIC_LOG", help="a capture (any format vio reads) recorded with the IMU at rest")
+    p.add_argument("--out", required=True, help="the Kalibr imu.yaml to write (plot and report go beside it)")
+    p.add_argument(
+        "--inflation",
+        type=float,
+        default=10.0,
+        help="the factor VIO users commonly multiply the noise by (reported, not applied)",
+    )
+    p.set_defaults(func=_cmd_imu)

@@ -84,3 +84,31 @@ def residuals_png(cal: CameraCalibration) -> bytes:
     ax3.set_title("per-view RMS")
     ax3.legend()
     return _png(fig)
+
+
+def allan_png(taus_s: np.ndarray, adev: np.ndarray, fits: tuple, unit: str, title: str) -> bytes:
+    """One sensor's Allan deviation (3, T) per axis with each axis' fitted -1/2 and +1/2 lines and the points
+    where N (tau = 1 s), K (tau = 3 s) and B (the minimum) are read."""
+    from matplotlib.figure import Figure
+
+    from vio.calibrate.allan import BIAS_INSTABILITY_FACTOR
+
+    fig = Figure(figsize=(7.5, 5.5), layout="constrained")
+    ax = fig.add_subplot()
+    t = np.logspace(np.log10(taus_s[0]), np.log10(taus_s[-1]), 200)
+    for j, (a, f) in enumerate(zip(adev, fits, strict=True)):
+        c = f"C{j}"
+        ax.loglog(taus_s, a, "-", color=c, lw=1.6, label=f"{'xyz'[j]}: N {f.white:.3g}, K {f.random_walk:.3g}")
+        ax.loglog(t, f.white / np.sqrt(t), "--", color=c, lw=0.8)
+        ax.loglog(t, f.random_walk * np.sqrt(t / 3.0), ":", color=c, lw=1.0)
+        ax.loglog([1.0], [f.white], "o", color=c, ms=5)
+        ax.loglog([3.0], [f.random_walk], "s", color=c, ms=5)
+        ax.loglog([f.tau_min_s], [f.bias_instability * BIAS_INSTABILITY_FACTOR], "v", color=c, ms=6)
+    lo = min(float(np.nanmin(adev)), min((f.random_walk for f in fits if f.random_walk > 0), default=np.inf)) / 2
+    ax.set_ylim(lo, float(np.nanmax(adev)) * 2)
+    ax.set_xlabel("tau (s)")
+    ax.set_ylabel(f"Allan deviation ({unit})")
+    ax.set_title(f"{title}: N on the -1/2 line at 1 s (o), K on the +1/2 line at 3 s (s), B at the minimum (v)")
+    ax.grid(True, which="both", color="0.9")
+    ax.legend(fontsize=8)
+    return _png(fig)

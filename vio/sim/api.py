@@ -27,8 +27,8 @@ from vio.writers.asl import AslWriter
 
 log = logging.getLogger(__name__)
 
-BUILTIN = ("orbit", "figure8", "room")
-DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0}
+BUILTIN = ("orbit", "figure8", "room", "static")
+DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0, "static": 3600.0}
 
 
 def _streams(seed: int) -> list[np.random.SeedSequence]:
@@ -77,7 +77,9 @@ def load_scenario(
         else:
             scene = scenarios.tabletop_scene(texture_seed, the_part, surface)
             centre = scene.object_corners_world().mean(axis=0)
-            make = scenarios.orbit_camera if base == "orbit" else scenarios.figure8_camera
+            make = {"orbit": scenarios.orbit_camera, "static": scenarios.static_camera}.get(
+                base, scenarios.figure8_camera
+            )
             cam_fn = make(rng, centre, **motion)
         default_s = DEFAULT_DURATION_S[base]
         if definition is not None and definition.duration_s is not None:

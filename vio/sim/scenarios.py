@@ -8,6 +8,7 @@ orbit:   a 76.2 mm cube on a 2.0 x 1.6 m table in a 4.1 x 4.0 m room; the camera
          with hand wobble (sums of sinusoids, seeded phases) and the optical axis wandering around the cube.
 figure8: the same scene, a horizontal figure eight (10 s per loop) above the table looking at the cube.
 room:    a hand-held walk (steps bob the camera) around a 4 x 5 m room with a table, the cube and furniture.
+static:  the orbit's scene, the phone at rest 0.45 m from the cube (an IMU noise log for `vio calibrate imu`).
 """
 
 from __future__ import annotations
@@ -158,3 +159,17 @@ def room_camera(rng: np.random.Generator, lap_s: float = 25.0) -> PoseFn:
         return pos(t) + 1.5 * look + 3.0 * aim_wob(t)
 
     return _camera_fn(pos, target, lambda t: roll_wob(t)[:, 0])
+
+
+def static_camera(rng: np.random.Generator, part_centre: np.ndarray) -> PoseFn:
+    """The phone at rest (an IMU noise log): the camera 0.45 m from the part, looking at it, never moving.
+
+    `rng` is unused (the pose has nothing random); it keeps the signature of the other camera motions."""
+    del rng
+    p = np.asarray(part_centre, float) + np.array([0.30, -0.25, 0.25])
+
+    def fn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p_cam = np.repeat(p[None, :], len(t), axis=0)
+        return p_cam, look_at(p_cam, np.asarray(part_centre, float)[None, :], np.zeros(len(t)))
+
+    return fn
