@@ -41,6 +41,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         surface=args.surface,
         stills_hz=args.stills,
         stills_size=args.stills_size,
+        board=args.board,
     )
     return 0
 
@@ -127,7 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("simulate", help="write a synthetic capture (ASL layout)")
-    p.add_argument("scenario", help="orbit | figure8 | room | a trajectory file (EuRoC CSV or TUM)")
+    p.add_argument(
+        "scenario", help="orbit | figure8 | room | static | calibration | a trajectory file (EuRoC CSV or TUM)"
+    )
     p.add_argument("--out", required=True, help="output capture folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's own)")
@@ -141,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--surface", choices=["speckle", "plain"], default="speckle", help="the part's paint")
     p.add_argument("--stills", type=float, default=0.0, metavar="HZ", help="full-resolution stills rate (0: off)")
     p.add_argument("--stills-size", type=_size, default=(2016, 1512), metavar="WxH", help="stills size, px")
+    p.add_argument("--board", help="calibration scenario's board: chessboard:COLSxROWS:SQUARE_MM | charuco:...")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")

@@ -1,7 +1,9 @@
-"""The views of a camera calibration: the board found in a list of images, or in frames picked from a video.
+"""The views of a camera calibration: the board found in a list of images (or the images of a folder, or of an
+ASL capture's `mav0/cam0/data/`), or in frames picked from a video.
 
 From a video, every `stride`-th frame is searched for the board; frames whose board is blurred (sharpness below
-half the median) are dropped, and at most `max_views` are kept, picked greedily for coverage: each next view is the
+half the median) are dropped. From a video or from more than `max_views` images, at most `max_views` views are
+kept, picked greedily for coverage: each next view is the
 one whose board position, size and tilt in the image differ most from those already picked.
 """
 
@@ -20,6 +22,7 @@ from vio.errors import CalibrationError
 log = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".3gp")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 MAX_VIDEO_CANDIDATES = 400  # frames searched for the board in a video (evenly spread)
 BLUR_FRACTION = 0.5  # a video frame sharper than this fraction of the median detection is kept
 
@@ -117,6 +120,24 @@ def pick_for_coverage(views: list[View], size: tuple[int, int], max_views: int) 
     return [views[i] for i in sorted(chosen)]
 
 
+def _expand(paths: list[Path]) -> list[Path]:
+    """A folder stands for its images (an ASL capture folder for `mav0/cam0/data/`), sorted by name."""
+    out: list[Path] = []
+    for path in paths:
+        if path.is_dir():
+            for sub in (path / "mav0" / "cam0" / "data", path / "cam0" / "data", path / "data"):
+                if sub.is_dir():
+                    path = sub
+                    break
+            found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise CalibrationError(f"{path}: folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+            out += found
+        else:
+            out.append(path)
+    return out
+
+
 def find_views(
     inputs: Sequence[str | Path], detector: BoardDetector, max_views: int = 40, stride: int | None = None
 ) -> ViewSet:
@@ -124,7 +145,7 @@ def find_views(
 
     CalibrationError when the images differ in size or the board is found in no image.
     """
-    paths = [Path(p) for p in inputs]
+    paths = _expand([Path(p) for p in inputs])
     if not paths:
         raise CalibrationError("no images given")
     rejected: list[tuple[str, str]] = []
@@ -167,6 +188,11 @@ def find_views(
         picked = pick_for_coverage(keep, size, max_views)
         names = {v.name for v in picked}
         rejected += [(v.name, "not needed for coverage") for v in keep if v.name not in names]
+        views = picked
+    elif len(views) > max_views:  # e.g. every frame of a capture: neighbours add little but time
+        picked = pick_for_coverage(views, size, max_views)
+        names = {v.name for v in picked}
+        rejected += [(v.name, "not needed for coverage") for v in views if v.name not in names]
         views = picked
     log.info("board found in %d of %d view(s)", len(views), n_frames)
     return ViewSet(views, rejected, size, rate_hz)

@@ -171,9 +171,17 @@ def simulate(
     """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
 
     `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
+    The scenario `calibration` (a board on a wall, `vio.sim.calibration`) takes `board=SPEC` in `scene`.
     `workers` render processes (default: 2, or 1 for short captures). `scene` holds `load_scenario`'s part,
     part_units, surface, stills_hz and stills_size.
     """
+    board = scene.pop("board", None)
+    if str(scenario) == "calibration":  # a board on a wall (vio.sim.calibration), not a scene with the part
+        from vio.sim.calibration import DEFAULT_BOARD, simulate_calibration
+
+        return simulate_calibration(out, board or DEFAULT_BOARD, seed, duration_s, imu_grade, overwrite, images)
+    if board is not None:
+        raise SimulationError("--board is for the calibration scenario (vio simulate calibration --board ...)")
     sc = load_scenario(scenario, seed, duration_s, imu_grade, **scene)
     _, ss_imu, ss_img, _, ss_stills = _streams(seed)
     imu, gt = simulate_imu(
