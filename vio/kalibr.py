@@ -42,6 +42,10 @@ def read_yaml(path: Path, error: type[VioError] = CalibrationError) -> dict[str,
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise error(f"{path}: file not found") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a text file (cannot decode as UTF-8)") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot be read ({exc.strerror or exc})") from None
     text = re.sub(r"^%YAML[: ]\d\.\d.*$", "", text, flags=re.MULTILINE)
     try:
         data = yaml.safe_load(text)
@@ -89,7 +93,10 @@ def _camera(path: Path, sec: dict[str, Any], camchain: bool) -> CameraCalib:
             f"{path}: camera model '{model}-{dmodel}' is not supported (pinhole-radtan only; "
             "recalibrate with Kalibr's pinhole-radtan model)"
         )
-    dist = np.asarray(sec.get(dist_key, [0.0, 0.0, 0.0, 0.0]), dtype=float)
+    try:
+        dist = np.asarray(sec.get(dist_key, [0.0, 0.0, 0.0, 0.0]), dtype=float)
+    except (TypeError, ValueError):
+        dist = np.zeros(0)
     if dist.shape != (4,):
         raise CalibrationError(f"{path}: {dist_key} must be [k1, k2, p1, p2]")
     if min(fx, fy) <= 0 or width <= 0 or height <= 0:

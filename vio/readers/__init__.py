@@ -121,7 +121,10 @@ def open_capture(
 
     topics = {k: v for k, v in (("image_topic", image_topic), ("imu_topic", imu_topic)) if v}
     problems: list[str] | None = None if strict else []
-    cap = read_capture(path, calib, problems, **topics)
+    try:
+        cap = read_capture(path, calib, problems, **topics)
+    except OSError as exc:  # e.g. a symbolic link loop, a file that cannot be read: one line naming it
+        raise CaptureError(f"cannot be read ({exc.strerror or exc})", exc.filename or path) from None
     for msg in [*(problems or []), *finish_capture(cap, Path(path), strict=strict, needs=needs)]:
         cap.warn(msg)
     return cap

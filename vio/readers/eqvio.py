@@ -28,6 +28,7 @@ from vio.records import CameraCalib, FeatureTracks, ImuSeries
 EQVIO_NAME = "eqvio_processed_30s.csv"
 _HEADER = ("row_type", "t_abs", "t_rel", "seq", "frame_idx", "landmark_id")
 EUROC_WIDTH, EUROC_HEIGHT = 752, 480  # EuRoC's image size, px (its IMU noise is `vio.readers.calib.EUROC_IMU`)
+_COLUMNS = ("gx", "gy", "gz", "ax", "ay", "az", "u_norm", "v_norm", "key", "value")  # besides _HEADER
 _META_KEYS = ("camera_fx", "camera_fy", "camera_cx", "camera_cy", "t0_abs") + tuple(
     f"T_ci_{c}" for c in ("tx", "ty", "tz", "qw", "qx", "qy", "qz")
 )
@@ -68,6 +69,13 @@ def read_eqvio(path: str | Path | None = None) -> Capture:
     path = Path(path) if path is not None else default_eqvio_path()
     if not path.is_file():
         raise CaptureError("file not found", path)
+    try:
+        return _read_rows(path)
+    except UnicodeDecodeError:
+        raise CaptureError("not a text file (cannot decode as UTF-8)", path) from None
+
+
+def _read_rows(path: Path) -> Capture:
     meta: dict[str, str] = {}
     imu_t: list[float] = []
     imu_v: list[list[float]] = []
@@ -79,6 +87,9 @@ def read_eqvio(path: str | Path | None = None) -> Capture:
         if header is None or tuple(header[:6]) != _HEADER:
             raise CaptureError("not an eqvio CSV (header must start with row_type,t_abs,t_rel,...)", path, 1)
         col = {name: i for i, name in enumerate(header)}
+        lacking = [c for c in _COLUMNS if c not in col]
+        if lacking:
+            raise CaptureError(f"header lacks column(s) {', '.join(lacking)}", path, 1)
         for row_no, row in enumerate(reader, start=2):
             if not row:
                 continue

@@ -35,7 +35,8 @@ def _reader(path: Path) -> Any:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except Exception as exc:  # rosbags raises several unrelated types for unreadable bags
-        raise CaptureError(f"cannot read the bag ({exc.__class__.__name__}: {str(exc)[:120]})", path) from None
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise CaptureError(f"cannot read the bag ({exc.__class__.__name__}: {first[:120]})", path) from None
     return reader
 
 

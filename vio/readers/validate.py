@@ -102,6 +102,31 @@ def unit_problems(imu: ImuSeries, path: Path) -> list[str]:
     return problems
 
 
+MAX_GYRO_RAD_S = 100.0  # phone gyros saturate near 35 rad/s (2000 deg/s)
+MAX_ACC_M_S2 = 1000.0  # about 100 g; phone accelerometers saturate at 16 g
+MAX_IMPLAUSIBLE = 0.01  # fraction of IMU samples that may be dropped as implausible before it is an error
+
+
+def _drop_implausible(cap: Capture, source: Path) -> str | None:
+    """Drop IMU samples beyond any sensor's range (a corrupt row, e.g. 1e308) with a warning; an error message when
+    more than MAX_IMPLAUSIBLE of them are."""
+    imu = cap.imu
+    assert imu is not None
+    bad = (np.linalg.norm(imu.gyro, axis=1) > MAX_GYRO_RAD_S) | (np.linalg.norm(imu.acc, axis=1) > MAX_ACC_M_S2)
+    if not bad.any():
+        return None
+    what = (
+        f"{int(bad.sum())} of {len(imu)} IMU samples beyond any sensor's range (|gyro| > {MAX_GYRO_RAD_S:g} rad/s "
+        f"or |acc| > {MAX_ACC_M_S2:g} m/s^2)"
+    )
+    if bad.mean() > MAX_IMPLAUSIBLE or bad.sum() > len(imu) - 2:
+        return f"{source}: {what}"
+    first = int(imu.t_ns[np.flatnonzero(bad)[0]])
+    cap.imu = ImuSeries(imu.t_ns[~bad], imu.gyro[~bad], imu.acc[~bad])
+    cap.warn(f"{source}: {what} dropped (first at t={first} ns)")
+    return None
+
+
 def unit_warnings(imu: ImuSeries, path: Path) -> list[str]:
     a = float(np.median(np.linalg.norm(imu.acc, axis=1)))
     if 1.6 < a < 7.0 or a > 14.0:
@@ -166,7 +191,10 @@ def finish_capture(
     if imu and (cap.imu is None or len(cap.imu) < 2):
         errors.append((CaptureError, f"{source}: no IMU stream (the estimator needs gyro and accelerometer)"))
     elif imu and cap.imu is not None:
-        errors += [(CaptureError, m) for m in unit_problems(cap.imu, source)]
+        units = unit_problems(cap.imu, source)
+        errors += [(CaptureError, m) for m in units]
+        if not units and (msg := _drop_implausible(cap, source)):
+            errors.append((CaptureError, msg))
         for m in unit_warnings(cap.imu, source):
             cap.warn(m)
     if camera and cap.num_frames == 0 and cap.tracks is None:

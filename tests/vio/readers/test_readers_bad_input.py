@@ -64,6 +64,24 @@ def test_one_garbage_row_is_dropped_with_a_warning(asl):
     assert any("imu0/data.csv:101: 1 garbage IMU row(s) dropped" in w for w in cap.warnings)
 
 
+def test_a_value_beyond_any_sensor_is_dropped_and_many_are_an_error(asl):
+    """Issue 20's fuzzer found a single 1e308 gyro sample passing every check (it would wreck the preintegration)."""
+    p, lines = _imu_lines(asl)
+    fields = lines[100].split(",")
+    t_bad = int(fields[0])
+    lines[100] = ",".join([fields[0], "1e308", *fields[2:]])
+    p.write_text("\n".join(lines) + "\n")
+    cap = open_capture(asl)
+    assert any(f"1 of {len(cap.imu) + 1} IMU samples beyond any sensor's range" in w for w in cap.warnings)
+    assert t_bad not in cap.imu.t_ns and np.abs(cap.imu.gyro).max() < 100
+    for k in range(100, 130):
+        fields = lines[k].split(",")
+        lines[k] = ",".join([*fields[:4], "5000", *fields[5:]])
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureError, match="IMU samples beyond any sensor's range"):
+        open_capture(asl)
+
+
 def test_many_garbage_rows_are_an_error_naming_the_first(asl):
     p, lines = _imu_lines(asl)
     for k in range(50, 80):
