@@ -82,11 +82,16 @@ def write_run_json(path: str | Path, summary: dict[str, Any]) -> None:
 def start_run(out: Path) -> None:
     """Remove the previous run's files (and temporaries a killed run left) from `out`, then write a run.json that
     says `running`: until the run's own run.json replaces it, nothing in `out` looks like a complete run."""
+    discard_run(out)
+    write_run_json(out / "run.json", stopped_summary("running", "the run has not finished (or was killed)"))
+
+
+def discard_run(out: Path) -> None:
+    """Remove a run's files and the temporaries of an interrupted write from `out`."""
     for name in RUN_FILES:
         (out / name).unlink(missing_ok=True)
         for tmp in out.glob(f".{name}.*.tmp"):
             tmp.unlink(missing_ok=True)
-    write_run_json(out / "run.json", stopped_summary("running", "the run has not finished (or was killed)"))
 
 
 def stopped_summary(status: str, reason: str) -> dict[str, Any]:

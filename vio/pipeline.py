@@ -174,9 +174,11 @@ def run_capture(
             for sink in sinks:
                 sink.close()
     except KeyboardInterrupt:
+        outputs.discard_run(out)  # an interrupted write_estimate may have left some files: none is kept
         outputs.write_run_json(out / "run.json", outputs.stopped_summary("interrupted", "interrupted by the user"))
         raise
     except VioError as exc:
+        outputs.discard_run(out)
         outputs.write_run_json(out / "run.json", outputs.stopped_summary("failed", str(exc)))
         raise
     if failure is not None:  # run.json already says failed, with the run's health
