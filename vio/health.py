@@ -9,6 +9,7 @@ Spans (each with its start, end and cause; times are sensor-clock ns, end exclus
 - `imu_gap`: more than `imu.max_gap_s` without an IMU sample inside the frames' span;
 - `recovery`: a solver failure the estimator survived by rebuilding from an earlier keyframe (the estimator has no
   other re-initialisation);
+- `keyframe_skipped`: a keyframe whose update raised an error the run went on without (start = end);
 - `frames_skipped`: frames whose image failed to decode (or has the wrong size), skipped.
 
 `status` is `failed` when there is no estimate (or too many frames failed to decode), `degraded` when any span was
@@ -25,13 +26,14 @@ import numpy as np
 from vio.config import Config
 from vio.records import EstimatorStats, ImuSeries
 
-KINDS = ("tracking_lost", "tracking_thin", "imu_only", "imu_gap", "recovery", "frames_skipped")
+KINDS = ("tracking_lost", "tracking_thin", "imu_only", "imu_gap", "recovery", "keyframe_skipped", "frames_skipped")
 _LABELS = {
     "tracking_lost": "tracking lost",
     "tracking_thin": "tracking thin",
     "imu_only": "IMU alone",
     "imu_gap": "IMU gap",
     "recovery": "solver recovery",
+    "keyframe_skipped": "keyframe skipped",
     "frames_skipped": "frames skipped",
 }
 MAX_REASONS = 12  # reasons listed one by one; the rest are counted
@@ -86,10 +88,14 @@ class HealthMonitor:
         self.frame_t_ns: list[int] = []
         self.num_tracked: list[int] = []
         self.skipped: list[tuple[int, str]] = []  # (t_ns, cause)
+        self.keyframes_skipped: list[tuple[int, str]] = []  # (t_ns, cause)
 
     def frame(self, t_ns: int, num_tracked: int) -> None:
         self.frame_t_ns.append(int(t_ns))
         self.num_tracked.append(int(num_tracked))
+
+    def keyframe_skipped(self, t_ns: int, cause: str) -> None:
+        self.keyframes_skipped.append((int(t_ns), cause))
 
     def skip(self, t_ns: int, cause: str) -> None:
         """A frame that could not be used; raises TooManySkipped past the allowed fraction."""
@@ -111,6 +117,7 @@ class HealthMonitor:
             *imu_only_spans(stats.keyframe_projections, set(state_t_ns), self.cfg.health.min_keyframe_projections),
             *imu_gap_spans(imu, times, self.cfg.imu.max_gap_s),
             *recovery_spans(stats),
+            *(HealthSpan("keyframe_skipped", t, t, cause[:200]) for t, cause in self.keyframes_skipped),
             *self._skipped_spans(),
         ]
         spans.sort(key=lambda s: (s.start_t_ns, KINDS.index(s.kind)))

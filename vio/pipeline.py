@@ -235,6 +235,7 @@ def _run(
                 except (RuntimeError, ValueError) as exc:  # never end the run on one bad keyframe
                     errors.append(f"keyframe at t={tracks.t_ns} ns skipped: {type(exc).__name__}: {exc}")
                     log.warning(errors[-1])
+                    monitor.keyframe_skipped(tracks.t_ns, f"{type(exc).__name__}: {str(exc).strip()}")
                     produced = []
                 if sinks and produced:
                     live = est.landmarks(sync=False)

@@ -58,6 +58,7 @@ def test_spans_from_frames_keyframes_imu_and_recoveries():
     rec = RecoveryEvent(7, 7 * 200 * MS, "IndeterminantLinearSystemException\nmore", 6)
     t_imu = np.concatenate([np.arange(0, 900 * MS, 5 * MS), np.arange(1000 * MS, 2000 * MS, 5 * MS)])
     imu = ImuSeries(t_imu, np.zeros((t_imu.size, 3)), np.zeros((t_imu.size, 3)))
+    mon.keyframe_skipped(1800 * MS, "RuntimeError: boom")
     health = mon.report(_stats(kfs, [rec]), [t for _, t, _ in kfs], imu)
     got = [(s.kind, s.start_t_ns // MS, s.end_t_ns // MS) for s in health.spans]
     assert got == [
@@ -65,8 +66,9 @@ def test_spans_from_frames_keyframes_imu_and_recoveries():
         ("tracking_lost", 500, 750),  # 5 frames without features, until the first good frame
         ("imu_gap", 895, 1000),
         ("recovery", 1200, 1400),  # rebuilt from keyframe 6 after keyframe 7 failed
+        ("keyframe_skipped", 1800, 1800),
     ]  # the 3 thin frames (150 ms) are shorter than min_span_s
-    assert health.status == "degraded" and len(health.reasons) == 4
+    assert health.status == "degraded" and len(health.reasons) == 5
     assert health.reasons[1].startswith("tracking lost 0.50-0.75 s (0.25 s): no tracked features in 5 frames")
     assert "IndeterminantLinearSystemException; rebuilt" in health.spans[3].cause
     ok = HealthMonitor(cfg, 10)
