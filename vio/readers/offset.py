@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vio.capture import Capture
+from vio.errors import CaptureError
 
 log = logging.getLogger(__name__)
 
@@ -73,15 +74,20 @@ def pair_rotation(xn0: np.ndarray, xn1: np.ndarray, focal_px: float) -> float | 
 
 
 def image_rotations(cap: Capture, max_pairs: int = 300) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t0_ns, t1_ns, angle_rad) for up to `max_pairs` consecutive frame pairs (angle NaN where unreliable)."""
+    """(t0_ns, t1_ns, angle_rad) for up to `max_pairs` consecutive frame pairs (angle NaN where unreliable; frames
+    that do not decode are left out)."""
     cam = cap.camera
     n = min(cap.num_frames, max_pairs + 1)
     t0s, t1s, angles = [], [], []
     prev = None
-    scale = 1.0
+    scale = None
     for i in range(n):
-        img = cap.load_image(i)
-        if i == 0:
+        try:
+            img = cap.load_image(i)
+        except CaptureError:  # a frame that does not decode: no pair with it (vio run skips it too)
+            prev = None
+            continue
+        if scale is None:
             scale = min(1.0, MAX_WIDTH / img.shape[1])
         small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else img
         if prev is not None:
