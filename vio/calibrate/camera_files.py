@@ -28,6 +28,7 @@ MOUNTS = {
     "phone": np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
     "identity": np.eye(3),
 }
+MAX_NAMES_SHOWN = 5  # views named per reason in the summary (camera_calibration.json lists them all)
 DEFAULT_RATE_HZ = 30.0  # written for still images, whose frame rate the calibration cannot know
 KALIBR_MODEL = {"radtan": "radtan", "equidistant": "equidistant"}
 ASL_MODEL = {"radtan": "radial-tangential", "equidistant": "equidistant"}
@@ -66,8 +67,14 @@ def summary_text(cal: CameraCalibration, vs: ViewSet, board_text: str) -> str:
         f"  RMS {cal.rms_px:.3f} px (views {cal.view_rms_px.min():.3f}-{cal.view_rms_px.max():.3f} px), "
         f"coverage {100 * cal.coverage:.0f} % of the image cells",
     ]
-    for name, reason in list(vs.rejected) + list(cal.dropped):
+    for name, reason in cal.dropped:  # outliers: each by name
         lines.append(f"  dropped {name}: {reason}")
+    by_reason: dict[str, list[str]] = {}
+    for name, reason in vs.rejected:
+        by_reason.setdefault(reason, []).append(name)
+    for reason, names in by_reason.items():
+        shown = ", ".join(names[:MAX_NAMES_SHOWN]) + (", ..." if len(names) > MAX_NAMES_SHOWN else "")
+        lines.append(f"  not used ({reason}): {len(names)} view(s): {shown}")
     return "\n".join(lines)
 
 
