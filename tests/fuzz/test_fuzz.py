@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import resource
+import shutil
 import subprocess
 import sys
 
@@ -39,3 +40,39 @@ def test_fuzzed_captures_end_in_a_clear_line(tmp_path):
     assert report["cases"] == EXAMPLES + report["corpus_cases"] and report["corpus_cases"] >= 50
     assert min(outcomes.get(k, 0) for k in ("error", "warning", "success")) > 20  # the mutations reach every class
     print(json.dumps({k: report[k] for k in ("cases", "outcomes", "slowest_case_s", "max_rss_mb")}))
+
+
+RUN_CASES = (  # corpus entries run through the whole of `vio run` (the CLI), by their `what`
+    "corrupt image bytes",
+    "PNG header declares 2^31-1 squared",
+    "1e308 in the gyro",
+    "an image that is a symlink loop",
+    "image name: absolute path outside the capture",
+    "IMU rows in reverse order",
+)
+
+
+def test_vio_run_on_fuzzed_captures_writes_only_its_out_folder(tmp_path):
+    """A few corpus cases through `vio run`: exit 0 with a run.json, or exit 2 with one `vio run: error:` line;
+    never a traceback, and nothing created or changed outside `--out`."""
+    from tests.fuzz.run import Fuzzer, _snapshot
+
+    fz = Fuzzer(tmp_path / "sandbox")
+    corpus = {c["what"]: c for c in json.loads((ROOT / "tests" / "fuzz" / "corpus.json").read_text())}
+    for what in RUN_CASES:
+        case = corpus[what]
+        assert fz.run_case(case["seed"], [tuple(m) for m in case["mutations"]]) in ("error", "warning", "success")
+        out = tmp_path / "out"
+        before = _snapshot(tmp_path, out)
+        cmd = [sys.executable, "-m", "vio.cli", "run", str(fz.case), "--out", str(out), "--set", "run.progress=false"]
+        res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, preexec_fn=_limit_memory)
+        assert "Traceback" not in res.stderr, (what, res.stderr[-2000:])
+        assert res.returncode in (0, 2), (what, res.stderr[-2000:])
+        if res.returncode == 2:
+            assert res.stderr.strip().splitlines()[-1].startswith("vio run: error: "), (what, res.stderr[-500:])
+        assert _snapshot(tmp_path, out) == before, what  # only --out was written
+        if res.returncode == 0:
+            assert json.loads((out / "run.json").read_text())["status"] in ("ok", "degraded"), what
+        elif (out / "run.json").exists():  # an error found before the run started leaves no run.json
+            assert json.loads((out / "run.json").read_text())["status"] == "failed", what
+        shutil.rmtree(out)

@@ -108,11 +108,13 @@ MAX_IMPLAUSIBLE = 0.01  # fraction of IMU samples that may be dropped as implaus
 
 
 def _drop_implausible(cap: Capture, source: Path) -> str | None:
-    """Drop IMU samples beyond any sensor's range (a corrupt row, e.g. 1e308) with a warning; an error message when
-    more than MAX_IMPLAUSIBLE of them are."""
+    """Drop IMU samples beyond any sensor's range (a corrupt row, e.g. 1e308) with a warning; when more than
+    MAX_IMPLAUSIBLE of them are, nothing is dropped and the error message is returned (a unit mistake, e.g. a gyro
+    in deg/s, is reported instead when the unit checks find it)."""
     imu = cap.imu
     assert imu is not None
-    bad = (np.linalg.norm(imu.gyro, axis=1) > MAX_GYRO_RAD_S) | (np.linalg.norm(imu.acc, axis=1) > MAX_ACC_M_S2)
+    with np.errstate(over="ignore"):  # 1e308 squared is inf, which is beyond the range too
+        bad = (np.linalg.norm(imu.gyro, axis=1) > MAX_GYRO_RAD_S) | (np.linalg.norm(imu.acc, axis=1) > MAX_ACC_M_S2)
     if not bad.any():
         return None
     what = (
@@ -191,10 +193,12 @@ def finish_capture(
     if imu and (cap.imu is None or len(cap.imu) < 2):
         errors.append((CaptureError, f"{source}: no IMU stream (the estimator needs gyro and accelerometer)"))
     elif imu and cap.imu is not None:
-        units = unit_problems(cap.imu, source)
+        beyond = _drop_implausible(cap, source)  # a few corrupt samples go first: they would skew the unit checks
+        with np.errstate(over="ignore", invalid="ignore"):  # statistics of corrupt values: inf/nan, then reported
+            units = unit_problems(cap.imu, source)
         errors += [(CaptureError, m) for m in units]
-        if not units and (msg := _drop_implausible(cap, source)):
-            errors.append((CaptureError, msg))
+        if beyond and not units:
+            errors.append((CaptureError, beyond))
         for m in unit_warnings(cap.imu, source):
             cap.warn(m)
     if camera and cap.num_frames == 0 and cap.tracks is None:
