@@ -36,6 +36,8 @@ def _report(noise: ImuNoise, inflation: float) -> dict:
     return {
         "rate_hz": noise.rate_hz,
         "duration_s": noise.duration_s,
+        "span_s": list(noise.span_s),
+        "log_duration_s": noise.log_duration_s,
         "kalibr_worst_axis": values,
         "inflation": {"factor": inflation, "applied": False, "inflated": {n: v * inflation for n, v in values.items()}},
         "gyro_per_axis": axes(noise.gyro),
@@ -48,6 +50,9 @@ def _report(noise: ImuNoise, inflation: float) -> dict:
 def summary_text(noise: ImuNoise, inflation: float) -> str:
     k = noise.kalibr()
     lines = [f"imu: {noise.duration_s:.0f} s static at {noise.rate_hz:.1f} Hz (overlapping Allan deviation)"]
+    if noise.duration_s < noise.log_duration_s - 1.5:
+        a, b = noise.span_s
+        lines.append(f"  used {a:.0f}-{b:.0f} s of the {noise.log_duration_s:.0f} s log (the IMU moved outside it)")
     for name, fits, u in (
         ("gyro", noise.gyro, ("rad/s/sqrt(Hz)", "rad/s^2/sqrt(Hz)", "deg/h")),
         ("acc", noise.acc, ("m/s^2/sqrt(Hz)", "m/s^3/sqrt(Hz)", "mg")),

@@ -156,6 +156,30 @@ def test_frames_picked_from_a_video(sim_views, tmp_path):
     assert abs(cal.fx / cam.fx - 1) < 0.01
 
 
+def test_blurred_video_frames_are_dropped_with_the_reason(sim_views, tmp_path):
+    import cv2
+
+    cam, board, _, images = sim_views
+    path = tmp_path / "shaky.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (cam.width, cam.height), False)
+    for i, img in enumerate(images):
+        writer.write(cv2.GaussianBlur(img, (0, 0), 4.0) if i % 4 == 0 else img)  # every 4th frame shaken
+    writer.release()
+    vs = find_views([path], BoardDetector(board), max_views=40)
+    blurred = sorted(int(n.split("#")[1]) for n, r in vs.rejected if r.startswith("blurred"))
+    assert blurred == list(range(0, len(images), 4))
+    assert len(vs.views) == len(images) - len(blurred)
+
+
+def test_the_sb_detector(sim_views):
+    cam, board, _, images = sim_views
+    det = BoardDetector(board, "sb")
+    views = [View(str(i), d, 1.0) for i, img in enumerate(images) if (d := det.detect(img)) is not None]
+    assert len(views) == len(images)
+    cal = calibrate_camera(views, board, (cam.width, cam.height), "radtan")
+    assert abs(cal.fx / cam.fx - 1) < 0.003 and abs(cal.cx / cam.cx - 1) < 0.003 and cal.rms_px < 0.2
+
+
 def test_equidistant_writes_kalibr_files_that_vio_run_refuses_clearly(sim_views, tmp_path):
     import cv2
 

@@ -98,3 +98,33 @@ def test_a_moving_log_is_one_line(tmp_path):
 def test_a_short_log_is_refused():
     with pytest.raises(CalibrationError, match="at least 60 s"):
         imu_noise(_static_imu(20.0, 200.0, seed=1))
+
+
+def _handled(imu, spans_s):
+    """The log with the IMU turned and tilted (as by a hand) during each (start, end) span, s since its start."""
+    from vio.records import ImuSeries
+
+    t_s = (imu.t_ns - imu.t_ns[0]) * 1e-9
+    gyro, acc = imu.gyro.copy(), imu.acc.copy()
+    for a, b in spans_s:
+        inside = (t_s >= a) & (t_s < b)
+        gyro[inside] += [0.3, -0.2, 0.1]
+        acc[inside] += [0.0, 2.0, -0.5]
+    return ImuSeries(imu.t_ns, gyro, acc)
+
+
+def test_a_log_handled_at_its_ends_keeps_its_static_stretch():
+    imu = _static_imu(200.0, 200.0, seed=2)
+    noise = imu_noise(_handled(imu, [(0.0, 6.0), (196.0, 201.0)]))
+    start, end = noise.span_s
+    assert 6.0 <= start <= 9.0 and 192.0 <= end <= 196.0 and noise.log_duration_s == pytest.approx(200.0)
+    g = grade_by_name("phone")
+    assert abs(noise.kalibr().gyroscope_noise_density / g.gyro_noise - 1) < 0.05
+
+
+def test_a_log_bumped_in_the_middle_is_refused():
+    imu = _static_imu(200.0, 200.0, seed=2)
+    with pytest.raises(
+        CalibrationError, match=r"not a static log: the (gyro|accelerometer)'s 1 s mean .* t = 10[0-2] s"
+    ):
+        imu_noise(_handled(imu, [(100.0, 103.0)]))
