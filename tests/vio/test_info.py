@@ -129,3 +129,17 @@ def test_info_reports_every_problem_not_only_the_first(sim_capture, tmp_path):
     assert "images are 640x480 but the calibration is for 1280x960" in out
     assert "camera: 80 frames" in out and "imu: " in out  # the readable streams are still described
     assert "camera-IMU time offset: " in out  # estimated from the frames that decode
+
+
+def test_info_reports_every_unreadable_stream_of_a_phone_log(tmp_path):
+    """A MARS folder whose IMU goes backwards, whose video is empty and whose calibration is not YAML: three lines."""
+    path = write_mars(rotation_capture(duration_s=1.0, fps=10.0), tmp_path / "mars")
+    imu = path / "gyro_accel.csv"
+    lines = imu.read_text().splitlines()
+    lines[1:] = lines[1:][::-1]
+    imu.write_text("\n".join(lines) + "\n")
+    (path / "movie.mp4").write_bytes(b"")
+    (path / "calib.yaml").write_text("cam0: [unclosed\n")
+    text = capture_info(path)
+    assert "problems: " in text and "IMU timestamp goes backwards" in text
+    assert "movie.mp4: video cannot be opened" in text and "calib.yaml: not valid YAML" in text

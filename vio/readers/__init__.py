@@ -69,7 +69,8 @@ def read_capture(
     **topics: str,
 ) -> Capture:
     """Read a capture in any supported format without the final checks (see `open_capture`). With a `problems`
-    list, an ASL/EuRoC stream that cannot be read is left out and its error appended there (other formats raise)."""
+    list, a stream that cannot be read (ASL, MARS, OpenCamera, Sensor Logger) is left out and its error appended
+    there; bags and eqvio files raise their first problem."""
     path = Path(path)
     fmt = detect_format(path)
     if fmt in ("asl", "tumvi"):
@@ -87,15 +88,15 @@ def read_capture(
     if fmt == "mars":
         from vio.readers.mars import read_mars
 
-        return read_mars(path, calib)
+        return read_mars(path, calib, problems)
     if fmt == "opencamera":
         from vio.readers.opencamera import read_opencamera
 
-        return read_opencamera(path, calib)
+        return read_opencamera(path, calib, problems)
     if fmt == "sensorlogger":
         from vio.readers.sensorlogger import read_sensorlogger
 
-        return read_sensorlogger(path, calib)
+        return read_sensorlogger(path, calib, problems)
     from vio.readers.eqvio import read_eqvio
 
     return read_eqvio(path)

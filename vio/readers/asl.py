@@ -16,22 +16,20 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from vio.capture import Capture, Stills
-from vio.errors import CalibrationError, CaptureError, VioError
+from vio.errors import CalibrationError, CaptureError
 from vio.kalibr import read_camera_yaml, read_imu_yaml
 from vio.readers.calib import find_calibration, load_calibration
-from vio.readers.common import FRAME_GAP_FACTOR, imu_from_table
+from vio.readers.common import FRAME_GAP_FACTOR, collect, imu_from_table
 from vio.readers.tables import Table, increasing_mask, read_strict_table, read_table, strict_rows
 from vio.readers.validate import gap_warnings
 from vio.records import CameraCalib, GroundTruth, ImuSeries
 
 GT_LAYOUT = "t_ns, p, q_wxyz, v, b_w, b_a"
-T = TypeVar("T")
 
 
 def read_imu_csv(path: Path, warnings: list[str] | None = None) -> ImuSeries:
@@ -102,18 +100,6 @@ def _frames(cam_csv: Path, warnings: list[str]) -> tuple[np.ndarray, list[Path]]
     return table.t_ns, [data_dir / n for n, k in zip(names, keep, strict=True) if k]
 
 
-def _stream(read: Callable[[], T], default: T, problems: list[str] | None) -> T:
-    """One stream of the capture: its reader's error raises, or (when collecting `problems`) is kept and the stream
-    left out, so that every unreadable stream is reported, not only the first."""
-    if problems is None:
-        return read()
-    try:
-        return read()
-    except VioError as exc:
-        problems.append(str(exc))
-        return default
-
-
 def read_asl(root: str | os.PathLike[str], problems: list[str] | None = None) -> Capture:
     """Read an ASL/EuRoC capture folder (the folder holding `mav0/`, or `mav0/` itself) with its own calibration.
 
@@ -126,14 +112,14 @@ def read_asl(root: str | os.PathLike[str], problems: list[str] | None = None) ->
         mav0 / "imu0" / "sensor.yaml",
         mav0 / "imu0" / "data.csv",
     )
-    camera = _stream(lambda: read_camera_yaml(cam_yaml), None, problems) if cam_yaml.exists() else None
-    imu_calib = _stream(lambda: read_imu_yaml(imu_yaml), None, problems) if imu_yaml.exists() else None
-    imu = _stream(lambda: read_imu_csv(imu_csv, warnings), None, problems) if imu_csv.exists() else None
+    camera = collect(lambda: read_camera_yaml(cam_yaml), None, problems) if cam_yaml.exists() else None
+    imu_calib = collect(lambda: read_imu_yaml(imu_yaml), None, problems) if imu_yaml.exists() else None
+    imu = collect(lambda: read_imu_csv(imu_csv, warnings), None, problems) if imu_csv.exists() else None
     frame_t, paths = np.zeros(0, np.int64), []
     if (mav0 / "cam0" / "data.csv").exists():
-        frame_t, paths = _stream(lambda: _frames(mav0 / "cam0" / "data.csv", warnings), (frame_t, paths), problems)
+        frame_t, paths = collect(lambda: _frames(mav0 / "cam0" / "data.csv", warnings), (frame_t, paths), problems)
     gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
-    gt = _stream(lambda: read_groundtruth_csv(gt_csv), None, problems) if gt_csv.exists() else None
+    gt = collect(lambda: read_groundtruth_csv(gt_csv), None, problems) if gt_csv.exists() else None
     scene = root / "scene" if (root / "scene").is_dir() else None
     fmt = "tumvi" if (mav0 / "mocap0").is_dir() or (root / "dso").is_dir() else "asl"
     cap = Capture(root, camera, imu_calib, imu, frame_t, _loader(paths), gt, scene, [], fmt)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
 from vio.capture import Capture
-from vio.errors import CaptureError
+from vio.errors import CaptureError, VioError
 from vio.readers.calib import Calibration, find_calibration, load_calibration
 from vio.readers.tables import Table, ensure_increasing, increasing_mask
 from vio.readers.validate import gap_warnings
@@ -17,8 +18,31 @@ from vio.records import ImuSeries
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 IMU_GAP_FACTOR = 4.0  # an IMU interval longer than this many nominal intervals is reported
 FRAME_GAP_FACTOR = 2.5  # a frame interval longer than this many nominal intervals is reported (dropped frames)
+
+
+def collect(read: Callable[[], T], default: T, problems: list[str] | None) -> T:
+    """One stream of a capture: its reader's error raises, or (when collecting `problems`, as `vio info` does) is
+    appended there and `default` returned, so that every unreadable stream is reported, not only the first."""
+    if problems is None:
+        return read()
+    try:
+        return read()
+    except VioError as exc:
+        problems.append(str(exc))
+        return default
+
+
+def no_frames(source: Path, why: str) -> Callable[[int], np.ndarray]:
+    """An image loader for a capture whose frames could not be read."""
+
+    def load(i: int) -> np.ndarray:
+        raise CaptureError(why, source)
+
+    return load
 
 
 def imu_from_table(table: Table, warnings: list[str]) -> ImuSeries:

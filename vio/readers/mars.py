@@ -9,13 +9,17 @@ timestamps are in seconds when the header says `[sec]`. Calibration: `--calib`, 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from vio.capture import Capture
 from vio.errors import CaptureError
-from vio.readers.common import frame_times, imu_from_table, make_capture, resolve_calibration
+from vio.readers.common import collect, frame_times, imu_from_table, make_capture, no_frames, resolve_calibration
 from vio.readers.tables import read_lines, read_table
 from vio.readers.video import VideoFrames, find_video, match_frame_count
+from vio.records import ImuSeries
 
 
 def _time_scale(path: Path) -> int:
@@ -35,14 +39,26 @@ def is_mars(folder: Path) -> bool:
     return (folder / "gyro_accel.csv").is_file()
 
 
-def read_mars(folder: Path, calib: str | Path | None = None) -> Capture:
+def read_mars(folder: Path, calib: str | Path | None = None, problems: list[str] | None = None) -> Capture:
+    """Read a MARS folder. With a `problems` list, a stream that cannot be read is left out and its error appended
+    there (`vio info`)."""
     folder = Path(folder)
     warnings: list[str] = []
+    imu = collect(lambda: _imu(folder, warnings), None, problems)
+    empty = (np.zeros(0, np.int64), no_frames(folder, "the frames could not be read"))
+    ft, load = collect(lambda: _frames(folder, warnings), empty, problems)
+    cal = collect(lambda: resolve_calibration(folder, calib), None, problems)
+    return make_capture(folder, "mars", cal, imu, ft, load, warnings)
+
+
+def _imu(folder: Path, warnings: list[str]) -> ImuSeries:
     imu_csv = folder / "gyro_accel.csv"
     scale = _time_scale(imu_csv)
-    imu = imu_from_table(
-        read_table(imu_csv, 0, [1, 2, 3, 4, 5, 6], time_scale=scale, warnings=warnings, what="IMU"), warnings
-    )
+    table = read_table(imu_csv, 0, [1, 2, 3, 4, 5, 6], time_scale=scale, warnings=warnings, what="IMU")
+    return imu_from_table(table, warnings)
+
+
+def _frames(folder: Path, warnings: list[str]) -> tuple[np.ndarray, Callable[[int], np.ndarray]]:
     times = folder / "frame_timestamps.txt"
     if not times.is_file():
         times = folder / "movie_metadata.csv"
@@ -60,5 +76,4 @@ def read_mars(folder: Path, calib: str | Path | None = None) -> Capture:
     n = match_frame_count(video, len(table), times, warnings)
     table = table.select(slice(0, n))
     ft, idx = frame_times(table, warnings)
-    cal = resolve_calibration(folder, calib)
-    return make_capture(folder, "mars", cal, imu, ft, lambda i: video(int(idx[i])), warnings)
+    return ft, lambda i: video(int(idx[i]))

@@ -24,9 +24,10 @@ import numpy as np
 
 from vio.capture import Capture
 from vio.errors import CaptureError
-from vio.readers.common import frame_times, make_capture, merge_gyro_acc, resolve_calibration
+from vio.readers.common import collect, frame_times, make_capture, merge_gyro_acc, no_frames, resolve_calibration
 from vio.readers.tables import Table, read_lines, read_table
 from vio.readers.video import VIDEO_SUFFIXES, VideoFrames, match_frame_count
+from vio.records import ImuSeries
 
 log = logging.getLogger(__name__)
 
@@ -131,22 +132,20 @@ def _camera(folder: Path, warnings: list[str]) -> tuple[np.ndarray, object] | No
     return ft, load
 
 
-def read_sensorlogger(folder: Path, calib: str | Path | None = None) -> Capture:
+def read_sensorlogger(folder: Path, calib: str | Path | None = None, problems: list[str] | None = None) -> Capture:
+    """Read a Sensor Logger export. With a `problems` list, a stream that cannot be read is left out and its error
+    appended there (`vio info`)."""
     folder = Path(folder)
     warnings: list[str] = []
     meta = _metadata(folder)
     ios = meta.get("platform", "").lower() == "ios" and meta.get("standardisation", "false").lower() != "true"
-    gyro = _xyz(folder / "Gyroscope.csv", warnings, "gyro")
-    acc = _specific_force(folder, ios, warnings)
-    imu = merge_gyro_acc(gyro, acc, warnings)
-    camera = _camera(folder, warnings)
-    ft, load = camera if camera else (np.zeros(0, np.int64), _no_frames(folder))
-    cal = resolve_calibration(folder, calib)
-    return make_capture(folder, "sensorlogger", cal, imu, ft, load, warnings)
 
+    def imu() -> ImuSeries:
+        gyro = _xyz(folder / "Gyroscope.csv", warnings, "gyro")
+        return merge_gyro_acc(gyro, _specific_force(folder, ios, warnings), warnings)
 
-def _no_frames(folder: Path):  # noqa: ANN202 - a loader for a capture without frames
-    def load(i: int) -> np.ndarray:
-        raise CaptureError("this Sensor Logger export has no Camera folder", folder)
-
-    return load
+    series = collect(imu, None, problems)
+    camera = collect(lambda: _camera(folder, warnings), None, problems)
+    ft, load = camera if camera else (np.zeros(0, np.int64), no_frames(folder, "this export has no readable camera"))
+    cal = collect(lambda: resolve_calibration(folder, calib), None, problems)
+    return make_capture(folder, "sensorlogger", cal, series, ft, load, warnings)
