@@ -14,6 +14,7 @@ from backend.smoother import Smoother, SolverFailure
 from frontend.preintegration import ImuPreintegrator
 from vio.config import Config, ImuConfig
 from vio.geometry import inv_T
+from vio.health import imu_only_spans, recovery_spans
 from vio.records import GRAVITY_WORLD, FeatureTracks, ImuSeries
 
 
@@ -116,6 +117,8 @@ def test_solver_failure_is_recovered(data, monkeypatch):
     est = run_estimator(data)
     recoveries = est.stats().recoveries
     assert len(recoveries) == 1 and recoveries[0].reason == "injected failure"
+    (span,) = recovery_spans(est.stats())  # run health: from the keyframe rebuilt from to the one that failed
+    assert span.end_t_ns == recoveries[0].t_ns and span.start_t_ns == est.state.t_ns[recoveries[0].restart_from_k]
     assert len(est.states()) >= len(data[5]) - 12
     assert all(np.isfinite(s.world_T_body).all() for s in est.states())
 
@@ -128,6 +131,11 @@ def test_tracking_loss_does_not_end_the_run(data):
     ]
     est = run_estimator((cam, imu, cal, t_kf, lost, gt))
     states = est.states()
+    # run health: the keyframes without features have no projection factor, and only they (IMU alone)
+    kfs = est.stats().keyframe_projections
+    assert [k for k, _, n in kfs if n == 0] == list(range(30, 38))
+    spans = imu_only_spans(kfs, {s.t_ns for s in states}, 1)
+    assert [(s.start_t_ns, s.end_t_ns) for s in spans] == [(kfs[29][1], kfs[38][1])]
     assert len(states) >= len(gt) - 12 and all(np.isfinite(s.world_T_body).all() for s in states)
     idx = [int(np.searchsorted(t_kf, s.t_ns)) for s in states]
     assert ate_se3(gt[idx, :3, 3], np.array([s.world_T_body[:3, 3] for s in states])) < 0.05
