@@ -55,6 +55,7 @@ class RunHealth:
     t0_ns: int  # the first frame's time: `start_s`/`end_s` in run.json count from here, ns
     num_frames_skipped: int
     tracked_features: dict[str, float]  # min / median of the tracked features per frame
+    first_estimate_t_ns: int | None = None  # the first keyframe with an estimate (the start's end), ns
 
     def to_dict(self, cfg: Config) -> dict[str, object]:
         """The `health` object of run.json."""
@@ -70,6 +71,9 @@ class RunHealth:
             "reasons": list(self.reasons),
             "spans": spans,
             "num_frames_skipped": self.num_frames_skipped,
+            "first_estimate_s": (
+                None if self.first_estimate_t_ns is None else round((self.first_estimate_t_ns - self.t0_ns) * 1e-9, 3)
+            ),
             "tracked_features": self.tracked_features,
             "config": asdict(cfg.health),
         }
@@ -133,7 +137,8 @@ class HealthMonitor:
             status, reasons = "failed", [failure, *reasons]
         else:
             status = "degraded" if spans else "ok"
-        return RunHealth(status, tuple(reasons), tuple(spans), t0, len(self.skipped), counts)
+        first = min(state_t_ns) if len(state_t_ns) else None
+        return RunHealth(status, tuple(reasons), tuple(spans), t0, len(self.skipped), counts, first)
 
     def _tracking_spans(self) -> list[HealthSpan]:
         h = self.cfg.health

@@ -113,6 +113,7 @@ def test_a_covered_lens_is_reported_as_degraded_with_its_span(orbit, tmp_path):
     imu_only = [s for s in run["health"]["spans"] if s["kind"] == "imu_only"]
     assert len(imu_only) == 1 and imu_only[0]["start_s"] <= 3.0 and imu_only[0]["end_s"] >= 4.0
     assert any(r.startswith("tracking lost 3.00-4.00 s") for r in run["reasons"])
+    assert 0.0 <= run["health"]["first_estimate_s"] < 2.0  # the moving start's end
     assert (tmp_path / "out" / "trajectory.tum").exists() and res.summary["span_s"] > 5.9
 
 
