@@ -168,7 +168,7 @@ class HealthMonitor:
         for i0, i1 in runs(bad):
             end = int(t_all[i1]) if i1 < t_all.size else int(t_all[-1])
             n = i1 - i0
-            cause = f"{n} frame(s) failed to decode, skipped (first: {causes[int(t_all[i0])]})"
+            cause = f"{n} frame(s) skipped (first: {causes[int(t_all[i0])]})"
             out.append(HealthSpan("frames_skipped", int(t_all[i0]), end, cause))
         return out
 
