@@ -7,7 +7,11 @@ by the depth map's confidence and the cosine of the viewing angle); in front of 
 truncation it gets a free-space vote, behind it by more than the truncation a behind vote; a pixel without depth is
 no evidence either way, except in a small hole of a surface (inside the closing of the known pixels, `hole_px`),
 where a voxel behind the largest depth around the hole is behind it (stereo leaves holes in the faces: without this
-their voxels would be unknown in the views that see the face and dent it). The field is then: the weighted average
+their voxels would be unknown in the views that see the face and dent it). Holes up to about 2 `fill_px` pixels
+across in a smooth surface (the textureless interiors of speckle dots, the same in every view that faces them) are
+first filled with the least-squares plane through the depths around them, at a fraction of a measured depth's
+weight: without that, where every view has the same hole the surface is only bounded to within the truncation
+distance (bumps and dents of about 1.5 mm on the cube's faces). The field is then: the weighted average
 (free votes count as +1) where a surface was observed near it; elsewhere inside only with positive evidence, i.e.
 behind an observed surface in at least one view, in at least as many views as saw no depth at its pixel, and seen
 through by fewer than `min_free_views` views (the part's interior, and cavities the cameras cannot see into, such as
@@ -95,8 +99,70 @@ def despeckle(depth_m: np.ndarray, speckle_m: float) -> tuple[np.ndarray, np.nda
     return d, valid, med
 
 
+def fill_holes(d: np.ndarray, valid: np.ndarray, radius_px: float, max_rms_m: float) -> np.ndarray:
+    """Mask of the small holes of a depth image that lie in a plane, filled in `d` in place with that plane.
+
+    A hole is a connected set of unknown pixels inside the morphological closing of the known ones (a square of
+    2 `radius_px` + 1 pixels). Its rim is the known pixels within 2 pixels of it; when the rim's depths fit a plane
+    z = a + b u + c v within `max_rms_m` RMS (a hole in a face, not a gap between a silhouette and the background),
+    the hole takes that plane's depths. Exact on planes whatever their slant; only the rim is used, so a nearby
+    edge or the table does not stop a hole in a face from being filled."""
+    r = int(round(radius_px))
+    holes = np.zeros_like(valid)
+    if r < 1:
+        return holes
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    closed = cv2.erode(cv2.dilate(valid.astype(np.uint8), kernel), kernel, borderValue=1).astype(bool)
+    lab, n = ndimage.label(closed & ~valid)
+    if n == 0:
+        return holes
+    rim = np.where(valid, ndimage.grey_dilation(lab, size=(5, 5)), 0)
+    rr, rc = np.nonzero(rim)
+    comp = rim[rr, rc]
+    zc = np.float64(np.median(d[valid]))
+    z = d[rr, rc].astype(np.float64) - zc
+    u, v = rc.astype(np.float64), rr.astype(np.float64)
+    mean_u = np.bincount(comp, u, n + 1) / np.maximum(np.bincount(comp, None, n + 1), 1)
+    mean_v = np.bincount(comp, v, n + 1) / np.maximum(np.bincount(comp, None, n + 1), 1)
+    u, v = u - mean_u[comp], v - mean_v[comp]  # per hole, centred on its rim: well conditioned
+
+    def moment(w: np.ndarray | None) -> np.ndarray:
+        return np.bincount(comp, w, n + 1)
+
+    cnt, su, sv, sz = moment(None), moment(u), moment(v), moment(z)
+    suu, suv, svv, suz, svz, szz = (
+        moment(u * u),
+        moment(u * v),
+        moment(v * v),
+        moment(u * z),
+        moment(v * z),
+        moment(z * z),
+    )
+    A = np.stack([np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)], -2)
+    A += np.eye(3) * 1e-6 * np.maximum(cnt, 1.0)[:, None, None]
+    b = np.stack([sz, suz, svz], -1)
+    coef = np.linalg.solve(A, b[..., None])[..., 0]
+    rms = np.sqrt(np.maximum(szz - (coef * b).sum(-1), 0.0) / np.maximum(cnt, 1.0))
+    good = (cnt >= 8) & (rms <= max_rms_m)
+    good[0] = False
+    hr, hc = np.nonzero(lab)
+    hl = lab[hr, hc]
+    keep = good[hl]
+    hr, hc, hl = hr[keep], hc[keep], hl[keep]
+    c = coef[hl]
+    d[hr, hc] = (zc + c[:, 0] + c[:, 1] * (hc - mean_u[hl]) + c[:, 2] * (hr - mean_v[hl])).astype(np.float32)
+    holes[hr, hc] = True
+    return holes
+
+
 def prepare_depth(
-    view: View, depth: DepthMap, speckle_m: float, step: int = 1, window: tuple[slice, slice] | None = None
+    view: View,
+    depth: DepthMap,
+    speckle_m: float,
+    step: int = 1,
+    window: tuple[slice, slice] | None = None,
+    fill_px: float = 0.0,
+    fill_weight: float = 0.3,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(depth m, weight, K) of one view, every `step`-th pixel of the (rows, columns) `window` (K (3, 3) px of that
     grid): isolated outliers (farther than `speckle_m` from the 3x3 median) become NaN; weight = confidence x |cos|
@@ -107,8 +173,9 @@ def prepare_depth(
     rows, cols = window or (slice(None), slice(None))
     rows, cols = slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)
     d, valid, med = despeckle(depth.depth_m[rows, cols], speckle_m)
+    holes = fill_holes(d, valid, fill_px / step, 0.25 * speckle_m)
     h, w = d.shape
-    filled = np.where(valid, d, med)  # normals next to holes from the local median
+    filled = np.where(valid | holes, d, med)  # normals next to holes from the local median
     shift = np.array([[1.0, 0.0, -(cols.start or 0)], [0.0, 1.0, -(rows.start or 0)], [0.0, 0.0, 1.0]])
     K = np.diag([1.0 / step, 1.0 / step, 1.0]) @ shift @ view.K
     x = ((np.arange(w) - K[0, 2]) / K[0, 0]).astype(np.float32)[None, :]
@@ -124,16 +191,20 @@ def prepare_depth(
     norm2 *= x * x + y * y + np.float32(1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         weight = filled / np.sqrt(norm2)
-    weight = np.where(valid, np.maximum(weight, _MIN_COS), np.float32(0.0))
+    weight = np.where(valid | holes, np.maximum(weight, _MIN_COS), np.float32(0.0))
     if depth.confidence is not None:
-        weight *= np.clip(depth.confidence[rows, cols], 0.0, 1.0)
+        weight *= np.where(holes, np.float32(1.0), np.clip(depth.confidence[rows, cols], 0.0, 1.0))
+    weight[holes] *= np.float32(fill_weight)
     return d, weight.astype(np.float32), K
 
 
-def nearest_depth(d: np.ndarray, radius_px: float) -> np.ndarray | None:
-    """The depth image `d` (NaN unknown) with its small holes closed: an unknown pixel inside the morphological
-    closing of the known ones (a square of 2 `radius_px` + 1 pixels; a hole in a surface, not the background
-    beyond a silhouette) takes the largest depth around it; NaN elsewhere. None for a radius under one pixel."""
+def hole_bounds(d: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """For the small holes of the depth image `d` (NaN unknown), the smallest and the largest depth around them:
+    (near, far) images where an unknown pixel inside the morphological closing of the known ones (a square of
+    2 `radius_px` + 1 pixels: a hole in a surface, not the background beyond a silhouette) takes the minimum and
+    the maximum known depth within that square; known pixels keep their depth; NaN elsewhere. None for a radius
+    under one pixel. A hole's surface lies between the two: a voxel in front of `near` is seen through it, a voxel
+    behind `far` is behind it (speckle dots without texture inside leave such holes in every view that faces them)."""
     r = int(round(radius_px))
     if r < 1:
         return None
@@ -141,7 +212,13 @@ def nearest_depth(d: np.ndarray, radius_px: float) -> np.ndarray | None:
     kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
     closed = cv2.erode(cv2.dilate(valid.astype(np.uint8), kernel), kernel, borderValue=1).astype(bool)
     far = cv2.dilate(np.where(valid, d, np.float32(-np.inf)), kernel)
-    return np.where(valid, d, np.where(closed & np.isfinite(far), far, np.float32(np.nan))).astype(np.float32)
+    near = cv2.erode(np.where(valid, d, np.float32(np.inf)), kernel)
+    hole = closed & ~valid & np.isfinite(far) & np.isfinite(near)
+    nan = np.float32(np.nan)
+    return (
+        np.where(valid, d, np.where(hole, near, nan)).astype(np.float32),
+        np.where(valid, d, np.where(hole, far, nan)).astype(np.float32),
+    )
 
 
 def _integrate(
@@ -150,10 +227,11 @@ def _integrate(
     images: tuple[np.ndarray, np.ndarray, np.ndarray],
     cam_T_support: np.ndarray,
     trunc_m: float,
-    nearest: np.ndarray | None = None,
+    holes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Add one view's observations (`prepare_depth`) of voxel centres (3, N) float32, support frame, to `acc`.
-    `nearest` (same grid as the depth, `nearest_depth`) closes small holes for the behind test only."""
+    `holes` (same grid as the depth, `hole_bounds`) closes small holes for the free and behind tests only (a
+    voxel in a hole's ray is free in front of the nearest depth around it, behind the farthest one)."""
     d, weight, K = images
     h, w = d.shape
     R = cam_T_support[:3, :3].astype(np.float32)
@@ -176,16 +254,19 @@ def _integrate(
         wt = flat_w.take(pix)
         free = sdf > trunc_m
         behind = sdf < -trunc_m
-        if nearest is not None:  # a hole in a surface: behind the nearest depth around it
-            hole_behind = unknown & (nearest.ravel().take(pix) - z < -trunc_m)
+        hole_free = None
+        if holes is not None:  # a hole in a surface: free in front of the depths around it, behind behind them
+            hole_behind = unknown & (holes[1].ravel().take(pix) - z < -trunc_m)
+            hole_free = unknown & (holes[0].ravel().take(pix) - z > trunc_m)
             behind |= hole_behind
-            unknown &= ~hole_behind
+            free |= hole_free
+            unknown &= ~(hole_behind | hole_free)
         near = (np.abs(sdf) <= trunc_m) & (wt > 0)
         sl = slice(s, s + c.shape[1])
         acc.free[sl] += free
         acc.behind[sl] += behind
         acc.unknown[sl] += unknown
-        acc.free_weight[sl] += np.where(free, wt, zero)
+        acc.free_weight[sl] += np.where(free, wt, zero) if hole_free is None else np.where(free & ~hole_free, wt, zero)
         acc.sdf[sl] += np.where(near, wt * sdf * inv_trunc, zero)
         acc.weight[sl] += np.where(near, wt, zero)
 
@@ -199,9 +280,13 @@ def fuse_depth_maps(
     min_free_views: int = 2,
     coarse_factor: int = 4,
     hole_px: float = 8.0,
+    fill_px: float = 16.0,
+    fill_weight: float = 0.3,
 ) -> FusedVolume:
     """Fuse depth maps (z-depth per pixel of `views[dm.view]`) into a FusedVolume over `roi` (voxel edge
-    `voxel_m` m, truncation `trunc_voxels` voxels). See the module docstring for the rule."""
+    `voxel_m` m, truncation `trunc_voxels` voxels). Holes of up to 2 `fill_px` pixels in a smooth surface are
+    filled with the plane through the depths around them, at `fill_weight` times the weight of a measured depth
+    (`fill_holes`). See the module docstring for the rule."""
     if not depth_maps:
         raise ModelError("no depth maps to fuse")
     f = int(coarse_factor)
@@ -228,8 +313,8 @@ def fuse_depth_maps(
         window = _window(corners, cam_T_support, view.K, dm.depth_m.shape)  # where the grid is seen
         if window is None:
             continue
-        images = prepare_depth(view, dm, trunc_m, step, window)
-        _integrate(coarse, centres_c, images, cam_T_support, trunc_c, nearest_depth(images[0], hole_px / step))
+        images = prepare_depth(view, dm, trunc_m, step, window, fill_px, fill_weight)
+        _integrate(coarse, centres_c, images, cam_T_support, trunc_c, hole_bounds(images[0], hole_px / step))
         prepared.append((dm, view, cam_T_support, window))
     if not prepared:
         raise ModelError("no depth map sees the region of interest")
@@ -247,8 +332,8 @@ def fuse_depth_maps(
     centres = np.ascontiguousarray((origin + fine_ijk * voxel_m).T, dtype=np.float32)
     fine = _Accumulator.zeros(centres.shape[1])
     for dm, view, cam_T_support, window in prepared:
-        images = prepare_depth(view, dm, trunc_m, 1, window)
-        _integrate(fine, centres, images, cam_T_support, trunc_m, nearest_depth(images[0], hole_px))
+        images = prepare_depth(view, dm, trunc_m, 1, window, fill_px, fill_weight)
+        _integrate(fine, centres, images, cam_T_support, trunc_m, hole_bounds(images[0], hole_px))
     tsdf = np.repeat(np.repeat(np.repeat(np.where(sign, 1.0, -1.0).astype(np.float32), f, 0), f, 1), f, 2)
     ii = fine_ijk.astype(np.int64)
     tsdf[ii[:, 0], ii[:, 1], ii[:, 2]] = fine.field(min_free_views)

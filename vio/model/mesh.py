@@ -44,6 +44,27 @@ def _volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
 
 
+def _smooth(vertices: np.ndarray, faces: np.ndarray, iterations: int, max_rounds: int = 4) -> np.ndarray:
+    """Taubin-smoothed vertices; where smoothing made faces cross each other (thin folds of the field), those faces
+    and their neighbours keep their marching-cubes positions (which do not intersect), round by round."""
+    import trimesh
+
+    from vio.model.quality import intersecting_faces
+
+    tm = trimesh.Trimesh(vertices, faces, process=False, validate=False)
+    trimesh.smoothing.filter_taubin(tm, lamb=0.5, nu=0.53, iterations=iterations)
+    smoothed = np.array(tm.vertices)
+    for _ in range(max_rounds):
+        bad = intersecting_faces(smoothed, faces)
+        if len(bad) == 0:
+            break
+        ring = np.unique(faces[bad])
+        ring = np.unique(faces[np.isin(faces, ring).any(axis=1)])  # and their neighbours
+        smoothed[ring] = vertices[ring]
+        log.info("mesh: %d faces crossed after smoothing; %d vertices left unsmoothed", len(bad), len(ring))
+    return smoothed
+
+
 def mesh_from_volume(volume: FusedVolume, frame: str = "world", smooth_iterations: int = 10) -> Mesh:
     """The part's surface (zero level of the field) as a closed mesh in metres, in `frame`: "world" (the run's
     world) or "support" (the part on its base: z up, origin on the plane). Only the largest connected piece is
@@ -63,11 +84,7 @@ def mesh_from_volume(volume: FusedVolume, frame: str = "world", smooth_iteration
     if _volume(vertices, faces) < 0:
         faces = faces[:, ::-1]
     if smooth_iterations > 0:
-        import trimesh
-
-        tm = trimesh.Trimesh(vertices, faces, process=False, validate=False)
-        trimesh.smoothing.filter_taubin(tm, lamb=0.5, nu=0.53, iterations=smooth_iterations)
-        vertices = np.array(tm.vertices)
+        vertices = _smooth(vertices, faces, smooth_iterations)
     if frame == "world":
         T = volume.roi.world_T_support
         vertices = vertices @ T[:3, :3].T + T[:3, 3]

@@ -72,7 +72,7 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray) -> MeshQuality:
         bad_edges=int(len(boundary) + non_manifold),
         boundary_edges=int(len(boundary)),
         non_manifold_edges=non_manifold,
-        intersecting_triangles=_intersecting(v, f, directed[first], edge_of),
+        intersecting_triangles=len(_intersecting(v, f, directed[first], edge_of)),
     )
 
 
@@ -204,16 +204,27 @@ def _overlap_2d(a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
     return depth.min(axis=1) > tol
 
 
-def _intersecting(v: np.ndarray, f: np.ndarray, edges: np.ndarray, edge_of: np.ndarray) -> int:
+def intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Indices of the faces of a connected mesh (shared vertices, as marching cubes makes it) that cross a face
+    they share no vertex with (see the module docstring)."""
+    f = np.asarray(faces, dtype=np.int64)
+    v = np.asarray(vertices, dtype=np.float64)
+    directed = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    key = np.sort(directed, axis=1) @ np.array([len(v), 1], dtype=np.int64)
+    _, first, edge_of = np.unique(key, return_index=True, return_inverse=True)
+    return _intersecting(v, f, directed[first], edge_of)
+
+
+def _intersecting(v: np.ndarray, f: np.ndarray, edges: np.ndarray, edge_of: np.ndarray) -> np.ndarray:
     """Faces crossing a face they share no vertex with: every edge (E, 2) cast as a ray segment with Embree.
 
-    edge_of (3F,) maps each face's directed edges to rows of `edges`.
+    edge_of (3F,) maps each face's directed edges to rows of `edges`. Returns the faces' indices.
     """
     from embreex import rtcore_scene as rtcs
     from embreex.mesh_construction import TriangleMesh
 
     if len(f) < 2:
-        return 0
+        return np.zeros(0, np.int64)
     scene = rtcs.EmbreeScene()
     TriangleMesh(scene, v[f].astype(np.float32))
     a, b = v[edges[:, 0]], v[edges[:, 1]]
@@ -243,7 +254,7 @@ def _intersecting(v: np.ndarray, f: np.ndarray, edges: np.ndarray, edge_of: np.n
     edge_hit = np.concatenate([h[0] for h in hits])
     face_hit = np.concatenate([h[1] for h in hits]).astype(np.int64)
     if len(edge_hit) == 0:
-        return 0
+        return np.zeros(0, np.int64)
     # Both faces bordering a piercing edge cross the pierced face (the edge is part of each), and so does it.
     bordering = np.flatnonzero(np.isin(edge_of, ok[edge_hit])) // 3
-    return len(np.union1d(bordering, face_hit))
+    return np.union1d(bordering, face_hit)

@@ -3,12 +3,13 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
 
 from vio.errors import ModelError
-from vio.model.fuse import FusedVolume, fuse_depth_maps, fused_points
+from vio.model.fuse import FusedVolume, fill_holes, fuse_depth_maps, fused_points
 from vio.model.isolate import region_of_interest, support_plane
 from vio.model.mesh import mesh_checks, mesh_from_volume, to_support
 from vio.model.records import DepthMap, Mesh, Roi, View
@@ -127,6 +128,67 @@ def test_holes_in_the_faces_leave_no_dents(model):
     assert checks["volume_m3"] == pytest.approx(SIDE_M**3, rel=0.01)
     _, dist, _ = trimesh.proximity.closest_point(cad, mesh.vertices)
     assert np.percentile(dist, 99) < VOXEL_M and np.sqrt(np.mean(dist**2)) < 0.5 * VOXEL_M
+
+
+def test_fill_holes_is_exact_on_a_plane_and_stops_at_silhouettes():
+    """A hole in a plane is filled with that plane; a gap between a near and a far surface is left unknown."""
+    v, u = np.mgrid[0:200, 0:300]
+    plane = (0.4 + 1e-4 * u + 2e-4 * v).astype(np.float32)
+    valid = np.ones(plane.shape, bool)
+    valid[80:110, 100:140] = False  # 30 x 40 px: closed by a 16 px radius
+    d = np.where(valid, plane, np.nan).astype(np.float32)
+    holes = fill_holes(d, valid, 16, 1e-4)
+    assert holes.sum() == 1200 and np.abs(d[holes] - plane[holes]).max() < 1e-5
+    step = np.where(u < 150, 0.4, 0.6).astype(np.float32)  # a silhouette: 0.2 m between the two sides
+    valid = np.abs(u - 150) > 5
+    d = np.where(valid, step, np.nan).astype(np.float32)
+    assert not fill_holes(d, valid, 16, 1e-4).any() and np.isnan(d[~valid]).all()
+
+
+def test_the_same_holes_in_every_view_leave_no_bumps(model):
+    """Speckle dots without texture inside leave the same holes in every view that faces them: the surface there
+    must still be the face's plane (filled), not a bump or dent of the truncation distance's size."""
+    _, _, volume, _, cad = model
+    _, views, maps = ground_truth_views(16, outliers=0.0, holes=0.0)
+    dots, face = trimesh.sample.sample_surface_even(cad, 300, seed=5)  # dots of 3 mm radius on the faces, world
+    normals = cad.face_normals[face]
+    centre = cad.bounds.mean(axis=0)
+    inner = (np.abs(dots - centre) < SIDE_M / 2 - 6e-3).sum(axis=1) == 2  # 6 mm or more from every edge
+    dots, normals = dots[inner], normals[inner]
+    # each dot's rim: 24 points on a 3 mm circle in its face's plane
+    e1 = np.cross(normals, [0.0, 0.0, 1.0])
+    e1[np.linalg.norm(e1, axis=1) < 0.5] = [1.0, 0.0, 0.0]
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(normals, e1)
+    ang = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
+    rims = dots[:, None, :] + 3e-3 * (
+        np.cos(ang)[None, :, None] * e1[:, None] + np.sin(ang)[None, :, None] * e2[:, None]
+    )
+    holed = []
+    for dm in maps:
+        view = views[dm.view]
+        T = np.linalg.inv(view.world_T_cam)
+        mask = np.zeros(dm.depth_m.shape, np.uint8)
+        for centre, rim, n in zip(dots, rims, normals, strict=True):
+            c = T[:3, :3] @ centre + T[:3, 3]
+            if n @ (view.world_T_cam[:3, 3] - centre) <= 0 or c[2] <= 0:
+                continue  # the dot faces away
+            uv = (c[:2] / c[2] * np.diag(view.K)[:2] + view.K[:2, 2]).astype(int)
+            if not (0 <= uv[0] < mask.shape[1] and 0 <= uv[1] < mask.shape[0]):
+                continue
+            if abs(dm.depth_m[uv[1], uv[0]] - c[2]) > 2e-3:
+                continue  # occluded
+            pc = rim @ T[:3, :3].T + T[:3, 3]
+            poly = pc[:, :2] / pc[:, 2:] * np.diag(view.K)[:2] + view.K[:2, 2]
+            cv2.fillPoly(mask, [np.round(poly).astype(np.int32)], 1)
+        holed.append(DepthMap(dm.view, np.where(mask > 0, np.nan, dm.depth_m).astype(np.float32)))
+    mesh = mesh_from_volume(fuse_depth_maps(views, holed, volume.roi, voxel_m=VOXEL_M))
+    _, dist, _ = trimesh.proximity.closest_point(cad, mesh.vertices)
+    unfilled = mesh_from_volume(fuse_depth_maps(views, holed, volume.roi, voxel_m=VOXEL_M, fill_px=0))
+    _, dist0, _ = trimesh.proximity.closest_point(cad, unfilled.vertices)
+    assert mesh_checks(mesh)["watertight"]
+    assert np.abs(dist).max() < 1.5 * VOXEL_M  # measured 0.77 mm (about one voxel)
+    assert np.percentile(np.abs(dist0), 99) > 2 * VOXEL_M  # without the fill: 3.5 mm bumps (the truncation)
 
 
 def test_bottom_is_closed_on_the_plane(model):
