@@ -1,8 +1,9 @@
 """The simulator's public functions: `load_scenario` (the oracle other tests use) and `simulate` (writes a capture).
 
-Seeds are split by stream with `np.random.SeedSequence(seed).spawn(5)`: trajectory (motion phases), IMU (noise
-and biases), image noise, scene (textures), stills noise (the first four are those of the earlier `spawn(4)`, so
-adding the stills stream changed no other stream). The same seed gives byte-identical files.
+Seeds are split by stream with `np.random.SeedSequence(seed).spawn(7)`: trajectory (motion phases), IMU (noise
+and biases), image noise, scene (textures), stills noise, the phone IMU's scale factors and misalignment, and its
+timestamp jitter (the first four are those of the earlier `spawn(4)` and the first five those of `spawn(5)`, so
+adding a stream changed no other stream). The same seed gives byte-identical files.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import numpy as np
 from vio.errors import SimulationError
 from vio.sim import rig, scenarios
 from vio.sim.definitions import read_definition
-from vio.sim.imu import grade_by_name, imu_calib, simulate_imu
+from vio.sim.imu import PhoneImu, grade_by_name, imu_calib, simulate_imu
 from vio.sim.parts import build_part
+from vio.sim.phone import PhoneCamera, portrait_camera
 from vio.sim.scenario import Scenario
 from vio.sim.scene import SURFACES
 from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
@@ -34,7 +36,7 @@ DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0, "static": 36
 def _streams(seed: int) -> list[np.random.SeedSequence]:
     if seed < 0:
         raise SimulationError(f"seed must be non-negative, got {seed}")
-    return np.random.SeedSequence(seed).spawn(5)
+    return np.random.SeedSequence(seed).spawn(7)
 
 
 def load_scenario(
@@ -47,21 +49,31 @@ def load_scenario(
     surface: str = "speckle",
     stills_hz: float = 0.0,
     stills_size: tuple[int, int] = rig.STILLS_SIZE,
+    phone: PhoneCamera | None = None,
+    imu_rate_hz: float | None = None,
+    phone_imu: PhoneImu | None = None,
 ) -> Scenario:
     """Build a scenario by name (`orbit`, `figure8`, `room`), from a scenario YAML (`data/synthetic/*.yaml`), or
     from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses.
 
     `part` is the measured object (`vio.sim.parts`: cube, cube_features, freeform, or an STL file in `part_units`),
     painted with `surface` (speckle | plain). `stills_hz` > 0 adds full-resolution stills of `stills_size`
-    (width, height) px taken by the same camera (`mav0/cam1`)."""
+    (width, height) px taken by the same camera (`mav0/cam1`). `phone` is the rolling-shutter camera model
+    (`vio.sim.phone`; None: the default global-shutter camera), `imu_rate_hz` the IMU rate (None: 200 Hz) and
+    `phone_imu` the magnitudes of the IMU's scale-factor, misalignment and timestamp errors (None: none)."""
     if surface not in SURFACES:
         raise SimulationError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
     the_part = build_part(part, part_units)
     stills = _stills_camera(stills_hz, stills_size)
-    ss_traj, _, _, ss_scene, _ = _streams(seed)
+    ss_traj, _, _, ss_scene, _, ss_imu_errors, _ = _streams(seed)
     rng = np.random.default_rng(ss_traj)
     texture_seed = int(ss_scene.generate_state(1)[0])
     camera = rig.default_camera()
+    imu_rate = rig.IMU_RATE_HZ if imu_rate_hz is None else float(imu_rate_hz)
+    if not np.isfinite(imu_rate) or not 50.0 <= imu_rate <= 2000.0:
+        raise SimulationError(f"IMU rate must be between 50 and 2000 Hz, got {imu_rate:g}")
+    if phone is not None:
+        phone.validate(rig.CAMERA_RATE_HZ, camera.height)
     name = str(scenario)
     t0_ns = rig.T0_NS
     span = None
@@ -81,6 +93,8 @@ def load_scenario(
                 base, scenarios.figure8_camera
             )
             cam_fn = make(rng, centre, **motion)
+        if phone is not None and phone.portrait:
+            cam_fn = portrait_camera(cam_fn)
         default_s = DEFAULT_DURATION_S[base]
         if definition is not None and definition.duration_s is not None:
             default_s = definition.duration_s
@@ -111,14 +125,16 @@ def load_scenario(
         trajectory=Trajectory(traj_fn, dur),
         scene=scene,
         camera=camera,
-        imu_calib=imu_calib(grade, rig.IMU_RATE_HZ),
+        imu_calib=imu_calib(grade, imu_rate),
         imu_grade=grade.name,
         t0_ns=int(t0_ns),
         duration_s=dur,
         camera_rate_hz=rig.CAMERA_RATE_HZ,
-        imu_rate_hz=rig.IMU_RATE_HZ,
+        imu_rate_hz=imu_rate,
         stills_camera=stills,
         stills_offset_ns=rig.STILLS_OFFSET_NS,
+        phone=phone,
+        imu_errors=None if phone_imu is None else phone_imu.draw(np.random.default_rng(ss_imu_errors)),
     )
 
 
@@ -166,6 +182,7 @@ def simulate(
     overwrite: bool = False,
     images: bool = True,
     workers: int | None = None,
+    mars: str | os.PathLike[str] | None = None,
     **scene: Any,
 ) -> Path:
     """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
@@ -173,17 +190,20 @@ def simulate(
     `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
     The scenario `calibration` (a board on a wall, `vio.sim.calibration`) takes `board=SPEC` in `scene`.
     `workers` render processes (default: 2, or 1 for short captures). `scene` holds `load_scenario`'s part,
-    part_units, surface, stills_hz and stills_size.
+    part_units, surface, stills_hz, stills_size, phone, imu_rate_hz and phone_imu; `mars` (a folder) also
+    writes the capture as a MARS logger folder with H.264 video (`vio.writers.mars`).
     """
     board = scene.pop("board", None)
     if str(scenario) == "calibration":  # a board on a wall (vio.sim.calibration), not a scene with the part
         from vio.sim.calibration import DEFAULT_BOARD, simulate_calibration
 
+        if {"phone", "phone_imu", "imu_rate_hz"} & set(scene) or mars is not None:
+            raise SimulationError("--camera, --imu-rate and --mars are not available for the calibration scenario")
         return simulate_calibration(out, board or DEFAULT_BOARD, seed, duration_s, imu_grade, overwrite, images)
     if board is not None:
         raise SimulationError("--board is for the calibration scenario (vio simulate calibration --board ...)")
     sc = load_scenario(scenario, seed, duration_s, imu_grade, **scene)
-    _, ss_imu, ss_img, _, ss_stills = _streams(seed)
+    _, ss_imu, ss_img, _, ss_stills, _, ss_jitter = _streams(seed)
     imu, gt = simulate_imu(
         sc.trajectory,
         sc.t0_ns,
@@ -191,8 +211,14 @@ def simulate(
         sc.imu_rate_hz,
         grade_by_name(sc.imu_grade),
         np.random.default_rng(ss_imu),
+        sc.imu_errors,
+        np.random.default_rng(ss_jitter),
     )
     with AslWriter(out, overwrite=overwrite) as writer:
         write_capture(writer, sc, imu, gt, images, (ss_img, ss_stills), workers)
+    if mars is not None:
+        from vio.writers.mars import write_mars_from_asl
+
+        write_mars_from_asl(out, mars, overwrite=overwrite)
     log.info("simulated %s (%.1f s, seed %d, %s IMU) into %s", sc.name, sc.duration_s, seed, sc.imu_grade, out)
     return Path(out)

@@ -3,6 +3,11 @@
 gyro_k = omega_body(t_k) + b_w(t_k) + n_w,   n_w ~ N(0, (gyroscope_noise_density * sqrt(rate))^2)
 acc_k  = world_R_body(t_k)^T (a_world(t_k) - g) + b_a(t_k) + n_a, g = (0, 0, -9.81) m/s^2
 b_{k+1} = b_k + random_walk * sqrt(dt) * N(0, 1)   (per axis, gyro and accelerometer)
+
+A phone IMU (`PhoneImu`, issue 16) also has per-axis scale-factor errors and axis misalignment (cross-axis
+sensitivity): omega_body and the specific force pass through a matrix T = diag(1 + s) + M (M off-diagonal) before the
+bias and noise are added; and its timestamps are jittered: sample k is measured at the nominal time (the ground
+truth's) but stamped t_k + N(0, jitter^2) (clipped to +-0.4 periods, so stamps still increase).
 """
 
 from __future__ import annotations
@@ -41,6 +46,54 @@ IMU_GRADES: dict[str, ImuGrade] = {
 }
 
 
+@dataclass(frozen=True)
+class PhoneImu:
+    """Magnitudes (1 sigma) of a phone IMU's errors beyond noise and bias.
+
+    Datasheet tolerances of phone-class MEMS (Bosch BMI160, TDK ICM-20600/42605): sensitivity (scale factor) about
+    +-1 %, cross-axis sensitivity about +-1-2 %, so 1 % and 0.5 % (0.3 deg) per term as 1 sigma; Android
+    SensorEvent timestamps scatter by a few tenths of a millisecond around a regular grid.
+    """
+
+    gyro_scale: float = 0.01  # per-axis scale-factor error, fraction
+    acc_scale: float = 0.01
+    gyro_misalignment: float = 0.005  # each off-diagonal term of T, rad (cross-axis sensitivity)
+    acc_misalignment: float = 0.005
+    jitter_s: float = 3e-4  # timestamp error, s
+
+    def draw(self, rng: np.random.Generator) -> ImuErrors:
+        """The errors of one device (scale factors and misalignment), drawn once per capture."""
+
+        def matrix(scale: float, mis: float) -> np.ndarray:
+            T = np.eye(3) + np.diag(rng.normal(0.0, scale, 3))
+            off = ~np.eye(3, dtype=bool)
+            T[off] = rng.normal(0.0, mis, 6)
+            return T
+
+        return ImuErrors(
+            matrix(self.gyro_scale, self.gyro_misalignment),
+            matrix(self.acc_scale, self.acc_misalignment),
+            self.jitter_s,
+        )
+
+
+@dataclass(frozen=True)
+class ImuErrors:
+    """The true errors of one simulated phone IMU (ground truth): measured = T @ true + bias + noise."""
+
+    gyro_T: np.ndarray  # (3, 3) scale factors (diagonal, 1 + s) and misalignment (off-diagonal)
+    acc_T: np.ndarray  # (3, 3)
+    jitter_s: float  # timestamp error sigma, s
+
+    def yaml_dict(self) -> dict:
+        return {
+            "gyro_T": [[round(float(v), 9) for v in row] for row in self.gyro_T],
+            "acc_T": [[round(float(v), 9) for v in row] for row in self.acc_T],
+            "timestamp_jitter_s": float(self.jitter_s),
+            "model": "measured = T @ true + bias + noise; stamp = true time + N(0, jitter^2)",
+        }
+
+
 def grade_by_name(name: str) -> ImuGrade:
     try:
         return IMU_GRADES[name]
@@ -59,10 +112,13 @@ def simulate_imu(
     rate_hz: float,
     grade: ImuGrade,
     rng: np.random.Generator,
+    errors: ImuErrors | None = None,
+    jitter_rng: np.random.Generator | None = None,
 ) -> tuple[ImuSeries, GroundTruth]:
     """IMU samples at t0_ns + k / rate_hz for t in [0, duration_s], and ground truth at the same times.
 
-    Times are integer ns (k * 1e9 / rate rounded); the ground truth carries the true biases of each sample.
+    Times are integer ns (k * 1e9 / rate rounded); the ground truth carries the true biases of each sample. With
+    `errors` the measurements pass through their matrices and the stamps are jittered by `jitter_rng`.
     """
     n = int(np.floor(duration_s * rate_hz + 1e-9)) + 1
     k = np.arange(n, dtype=np.int64)
@@ -71,6 +127,9 @@ def simulate_imu(
     s = traj.sample(t_s)
     gyro = s.omega_body.copy()
     acc = np.einsum("nji,nj->ni", s.world_R_body, s.a_world - GRAVITY_WORLD)
+    if errors is not None:
+        gyro = gyro @ errors.gyro_T.T
+        acc = acc @ errors.acc_T.T
     b_w = np.zeros((n, 3))
     b_a = np.zeros((n, 3))
     if grade.noisy:
@@ -86,4 +145,11 @@ def simulate_imu(
         acc += b_a + steps[:, 9:12] * grade.acc_noise * np.sqrt(rate_hz)
     t_ns = np.int64(t0_ns) + offset_ns
     gt = GroundTruth(t_ns, s.p_world, R_to_quat_wxyz(s.world_R_body), s.v_world, b_w, b_a)
-    return ImuSeries(t_ns, gyro, acc), gt
+    stamps = t_ns
+    if errors is not None and errors.jitter_s > 0:
+        if jitter_rng is None:
+            raise SimulationError("timestamp jitter needs its own random generator")
+        lim = 0.4 / rate_hz
+        jitter = np.clip(jitter_rng.normal(0.0, errors.jitter_s, n), -lim, lim)
+        stamps = t_ns + np.round(jitter * 1e9).astype(np.int64)
+    return ImuSeries(stamps, gyro, acc), gt

@@ -273,15 +273,29 @@ class Renderer:
     # -- frames -----------------------------------------------------------------------------------------------
     def render(self, world_T_cam: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
         """(H, W) uint8 image seen from world_T_cam (4x4); noise from rng (None: noise-free)."""
+        val = self.radiance(world_T_cam) * np.float32(255.0)
+        if rng is not None:
+            val += rng.standard_normal(val.shape, dtype=np.float32) * np.float32(NOISE_DN)
+        return np.clip(np.rint(val), 0, 255).astype(np.uint8)
+
+    def radiance(self, world_T_cam: np.ndarray, rows: tuple[int, int] | None = None) -> np.ndarray:
+        """(R, W) float32 noise-free radiance in [0, 1] (1: white, 255 grey levels) of image rows [r0, r1) (None:
+        every row) seen from world_T_cam (4x4). A row band is what a rolling shutter reads at one time
+        (`vio.sim.phone`); anti-aliasing sees the band's own rows only."""
+        r0, r1 = (0, self.camera.height) if rows is None else (int(rows[0]), int(rows[1]))
+        band = rows is not None
+        rays = self.rays[:, r0:r1] if band else self.rays
         world_R_cam = world_T_cam[:3, :3].astype(np.float32)
         o = world_T_cam[:3, 3].astype(np.float32)
-        d = _rotate(world_R_cam, self.rays[0], self.rays[1])
+        d = _rotate(world_R_cam, rays[0], rays[1])
         cam_R_world, c = world_T_cam[:3, :3].T, world_T_cam[:3, 3]
         corners = [b.corners() for b in self.scene.boxes[1:]]
         corners += [self.part.corners_world] if self.part is not None else []
         windows = [None] + [self._window(k, cam_R_world, c) for k in corners]
+        if band:
+            windows = [None] + [_clip_window(w, r0, r1) for w in windows[1:]]
         t, sid, prim = self.trace(o, d, windows)
-        img = self.shade(o, d, t, sid, prim, self._norm15)
+        img = self.shade(o, d, t, sid, prim, self._norm15[r0:r1] if band else self._norm15)
         edge = np.zeros(sid.shape, bool)
         dh = sid[:, 1:] != sid[:, :-1]
         dv = sid[1:, :] != sid[:-1, :]
@@ -297,15 +311,22 @@ class Renderer:
         edge[:-1, :] |= dv
         vv, uu = np.nonzero(edge)
         if vv.size:  # anti-aliasing: N-rooks sub-samples on surface boundaries
-            rx, ry = self._sub_rays(vv, uu)
+            rx, ry = self._sub_rays(vv + r0 if band else vv, uu)
             ds = _rotate(world_R_cam, rx, ry)
             ts, sids, prims = self.trace(o, ds)
             norm15 = (1.0 + rx * rx + ry * ry) ** np.float32(0.75)
             img[vv, uu] = self.shade(o, ds, ts, sids, prims, norm15).mean(axis=1)
-        val = img * np.float32(255.0)
-        if rng is not None:
-            val += rng.standard_normal(val.shape, dtype=np.float32) * np.float32(NOISE_DN)
-        return np.clip(np.rint(val), 0, 255).astype(np.uint8)
+        return img
+
+
+def _clip_window(win: tuple[slice, slice] | None, r0: int, r1: int) -> tuple[slice, slice] | None:
+    """A full-image pixel window restricted to rows [r0, r1), in the band's own row numbers (None: outside)."""
+    if win is None:
+        return None
+    v0, v1 = max(win[0].start, r0), min(win[0].stop, r1)
+    if v0 >= v1:
+        return None
+    return slice(v0 - r0, v1 - r0), win[1]
 
 
 def camera_poses(sc: Scenario, t_ns: np.ndarray, camera: CameraCalib | None = None) -> np.ndarray:

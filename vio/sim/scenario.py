@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vio.records import CameraCalib, ImuCalib
+from vio.sim.imu import ImuErrors
+from vio.sim.phone import PhoneCamera, frame_times
 from vio.sim.scene import Scene
 from vio.sim.trajectory import Trajectory
 
@@ -33,11 +35,23 @@ class Scenario:
     imu_rate_hz: float
     stills_camera: CameraCalib | None = None  # full-resolution stills (`mav0/cam1`), None: no stills stream
     stills_offset_ns: int = 0  # time of the first still after t0_ns, ns
+    phone: PhoneCamera | None = None  # rolling shutter, blur, exposure, clock offset (None: the default camera)
+    imu_errors: ImuErrors | None = None  # scale factors, misalignment, timestamp jitter (None: none)
 
     def frame_times_ns(self) -> np.ndarray:
-        """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples)."""
+        """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples).
+        With a phone camera: the stamps on the camera clock (`phone_frame_times`)."""
+        if self.phone is not None:
+            return self.phone_frame_times()[0]
         n = int(np.floor(self.duration_s * self.camera_rate_hz + 1e-9))
         return np.int64(self.t0_ns) + np.round(np.arange(n) * (1e9 / self.camera_rate_hz)).astype(np.int64)
+
+    def phone_frame_times(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps on the camera clock, true top-row mid-exposure times on the IMU clock), ns (`vio.sim.phone`)."""
+        if self.phone is None:
+            t = self.frame_times_ns()
+            return t, t
+        return frame_times(self.t0_ns, self.duration_s, self.camera_rate_hz, self.phone)
 
     def stills_times_ns(self) -> np.ndarray:
         """(S,) times of the stills, ns: t0 + offset + k / rate within the duration (empty without stills)."""

@@ -4,7 +4,9 @@ Not `multiprocessing`: forking a process whose OpenCV thread pool has run can de
 spawn/fork-server methods re-run the caller's `__main__` script in every worker (a script without a main guard
 then never finishes). Frame i goes to worker i % W; results are read back in frame order, so the output does not
 depend on W. Protocol: length-prefixed pickles; the first message is (scene, camera), then one (pose, seed) per
-frame, answered by the frame's PNG bytes; an empty message ends the worker.
+frame, answered by the frame's PNG bytes, or one ("phone", poses (B, S, 4, 4), band rows (B + 1,)) per
+rolling-shutter frame, answered by its float32 radiance (`vio.sim.phone.render_radiance`); an empty message ends
+the worker.
 """
 
 from __future__ import annotations
@@ -40,10 +42,9 @@ def _recv(stream: IO[bytes]) -> Any:
     return pickle.loads(data)
 
 
-def render_in_workers(
-    scene, camera, jobs: list[tuple[np.ndarray, np.random.SeedSequence]], workers: int
-) -> Iterator[bytes]:
-    """Yield the PNG bytes of each (world_T_cam, seed) job in order, rendered by `workers` processes."""
+def render_in_workers(scene, camera, jobs: list[tuple], workers: int) -> Iterator[Any]:
+    """Yield the answer to each job in order (PNG bytes of a (world_T_cam, seed) job, the radiance of a phone
+    job), rendered by `workers` processes."""
     procs = [
         subprocess.Popen([sys.executable, "-m", "vio.sim.workers"], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         for _ in range(workers)
@@ -77,6 +78,7 @@ def render_in_workers(
 def main() -> int:
     import cv2
 
+    from vio.sim.phone import render_radiance
     from vio.sim.render import Renderer
     from vio.writers.asl import encode_png
 
@@ -88,6 +90,9 @@ def main() -> int:
         job = _recv(stdin)
         if job is None:
             return 0
+        if len(job) == 3 and job[0] == "phone":
+            _send(stdout, render_radiance(renderer, job[1], job[2]))
+            continue
         world_T_cam, seed = job
         _send(stdout, encode_png(renderer.render(world_T_cam, np.random.default_rng(seed))))
 

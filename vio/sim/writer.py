@@ -11,6 +11,7 @@ import yaml
 from vio.atomic import write_text
 from vio.records import CameraCalib, GroundTruth, ImuSeries
 from vio.sim.parts import write_stl
+from vio.sim.phone import Sensor, band_rows, blur_samples, exposure_times_ns, render_radiance
 from vio.sim.render import Renderer, camera_poses
 from vio.sim.scenario import Scenario
 from vio.sim.workers import render_in_workers
@@ -53,6 +54,10 @@ def scene_yaml_text(sc: Scenario) -> str:
         ],
         "frames": "world z up, gravity (0, 0, -9.81) m/s^2; body = IMU",
     }
+    if sc.phone is not None:  # only then: the default capture's scene.yaml stays as it was
+        meta["camera"] = {**sc.phone.yaml_dict(), "frames": "camera_frames.csv (stamp, true time, gain, blur)"}
+    if sc.imu_errors is not None:
+        meta["imu_errors"] = sc.imu_errors.yaml_dict()
     return "# vio simulated scene (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False)
 
 
@@ -89,9 +94,17 @@ def write_capture(
     write_text(writer.scene_dir / "scene.yaml", scene_yaml_text(sc))
     if not images:
         return
-    t_ns = sc.frame_times_ns()
-    for t, png in zip(t_ns, render_pngs(sc, sc.camera, t_ns, image_seeds[0], workers), strict=True):
-        writer.add_png(int(t), png)
+    if sc.phone is not None:
+        rows = []
+        for t, t_true, gain, samples, png in render_phone_pngs(sc, image_seeds[0], workers):
+            writer.add_png(int(t), png)
+            rows.append(f"{int(t)},{int(t_true)},{gain:.6f},{samples}")
+        header = "#t_stamp [ns] (camera clock),t_true [ns] (IMU clock; top row mid-exposure),gain,blur_samples"
+        write_text(writer.scene_dir / "camera_frames.csv", "\n".join([header, *rows]) + "\n")
+    else:
+        t_ns = sc.frame_times_ns()
+        for t, png in zip(t_ns, render_pngs(sc, sc.camera, t_ns, image_seeds[0], workers), strict=True):
+            writer.add_png(int(t), png)
     if sc.stills_camera is not None:
         writer.write_camera(sc.stills_camera, f"{comment}: full-resolution stills", cam_id=1)
         t_ns = sc.stills_times_ns()
@@ -121,3 +134,33 @@ def render_pngs(
             yield encode_png(renderer.render(world_T_cam, np.random.default_rng(seq)))
         return
     yield from render_in_workers(sc.scene, camera, jobs, workers)
+
+
+def render_phone_pngs(
+    sc: Scenario, image_seed: np.random.SeedSequence, workers: int | None = None
+) -> Iterator[tuple[int, int, float, int, bytes]]:
+    """Yield (stamp ns, true time ns, auto-exposure gain, blur samples, PNG bytes) of each frame of the phone camera
+    `sc.phone` (`vio.sim.phone`); frame i's noise comes from image_seed.spawn(F)[i]."""
+    phone, cam = sc.phone, sc.camera
+    stamps, t_true = sc.phone_frame_times()
+    rows = band_rows(cam.height, phone.bands)
+    half = int(round(phone.exposure_s * 0.5e9))
+    ends = camera_poses(sc, np.concatenate([t_true - half, t_true + half]))
+    jobs, samples = [], []
+    for i, t in enumerate(t_true):
+        s = blur_samples(ends[i], ends[len(t_true) + i], cam) if phone.exposure_s > 0 else 1
+        times = exposure_times_ns(int(t), phone, cam.height, s)
+        jobs.append(("phone", camera_poses(sc, times.ravel()).reshape(*times.shape, 4, 4), rows))
+        samples.append(s)
+    if workers is None:
+        workers = 2 if len(jobs) >= 20 else 1
+    if workers <= 1:
+        renderer = Renderer(sc.scene, cam)
+        radiances = (render_radiance(renderer, job[1], job[2]) for job in jobs)
+    else:
+        radiances = render_in_workers(sc.scene, cam, jobs, workers)
+    sensor = Sensor(phone, cam.width, cam.height, sc.camera_rate_hz)
+    seeds = image_seed.spawn(len(jobs))
+    for i, radiance in enumerate(radiances):
+        image, gain = sensor.expose(radiance, np.random.default_rng(seeds[i]))
+        yield int(stamps[i]), int(t_true[i]), gain, samples[i], encode_png(image)
