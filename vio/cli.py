@@ -103,7 +103,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from vio.bench import run_bench
 
-    run_bench(args.suite, args.out, jobs=args.jobs)
+    def progress(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    run_bench(args.suite, args.out, jobs=args.jobs, scheduler=args.scheduler, captures=args.captures,
+              progress=progress)  # fmt: skip
     return 0
 
 
@@ -176,9 +180,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("bench", help="Monte-Carlo drift benchmark against baselines")
-    p.add_argument("--suite", choices=["quick", "full", "drift60", "model", "parts"], default="quick")
-    p.add_argument("--out", required=True)
-    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--suite", default="quick", help="tiny | quick | full | drift60 | model | parts, or a suite YAML")
+    p.add_argument("--out", required=True, help="output folder; a suite run again into it resumes")
+    p.add_argument("--jobs", type=int, default=2, help="parallel jobs (local threads or LocalCluster workers)")
+    p.add_argument(
+        "--scheduler",
+        default="local",
+        help="local (default) | dask (a dask.distributed LocalCluster of --jobs workers) | tcp://HOST:PORT "
+        "(an existing Dask scheduler)",
+    )
+    p.add_argument("--captures", help="a captures folder every worker shares (default: OUT/captures, or each "
+                   "remote worker's temporary cache)")  # fmt: skip
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("info", help="what is in a capture")

@@ -1,15 +1,20 @@
 """`vio bench`: the Monte-Carlo drift benchmark, every method on the same simulated measurements.
 
 Layout of `out/`:
-  captures/<case>/            simulated captures, cached by key (scenario, IMU grade, seed, duration)
-  runs/<case>/<method>/       one folder per run: task.json, result.json, the estimate (trajectory.tum), logs
-  results.json                `{"runs": [...]}` one row per (case, method); a failed run is a row with `error`
-  results.md                  medians per scenario / IMU grade / method, plus RPE and the failures
+  captures/<case>/            simulated captures, cached by key (scenario, IMU grade, seed, duration, ...)
+  runs/<case>/<method>/       one folder per job: task.json, result.json, the estimate (trajectory.tum), logs, and
+                              job.json, the record of the finished job (its rows), written last
+  results.json                `{"runs": [...], "stats": {...}, "jobs": [...], "bench": {...}}`: one row per
+                              (case, method) (a failed run is a row with `error`), the medians with bootstrap
+                              intervals and the paired comparisons (`vio.bench.stats`), one record per job
+  results.md                  medians per scenario / IMU grade / method, intervals, comparisons, RPE, failures
   plots/                      trajectories from above, error over time, error distributions (PNG)
 
-Each capture is simulated, and each method run, in its own child process (`python -m vio.bench.worker`), at most
-`jobs` at a time. A child that raises, or dies (a segfault in a native library, the out-of-memory killer), costs
-one row with an `error` field, never the whole benchmark; the peak RSS of a row is that of its own process.
+A job is one method on one capture (`vio.bench.jobs`); it simulates its capture when no other job has. Jobs run
+on a scheduler (`vio.bench.schedulers`: local threads, a Dask LocalCluster, or an existing Dask cluster) and give
+identical rows on each. A job that fails (a row with an error, a worker lost) is reported and run once more; a
+suite run again into the same `out/` skips the jobs whose record is there and error-free (an interrupted suite
+resumes).
 """
 
 from __future__ import annotations
@@ -17,108 +22,162 @@ from __future__ import annotations
 import json
 import logging
 import os
-import subprocess
-import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from vio.atomic import ensure_dir, write_json
+from vio.atomic import ensure_dir, write_bytes, write_json
+from vio.bench.jobs import error_row, job_spec
+from vio.bench.schedulers import open_scheduler
 from vio.bench.suites import Case, Method, Suite, get_suite
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_bench", "run_suite"]
+__all__ = ["error_row", "run_bench", "run_suite"]
 
-TASK_TIMEOUT_S = 1800.0  # a single simulation or method run taking longer than this is recorded as failed
-
-
-def _run_child(task: dict[str, Any], folder: Path) -> dict[str, Any]:
-    """Run one task in a child process; returns its result dict (or an `error` dict when the child failed)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    task_path = folder / "task.json"
-    result_path = folder / "result.json"
-    result_path.unlink(missing_ok=True)
-    write_json(task_path, task)
-    cmd = [sys.executable, "-m", "vio.bench.worker", str(task_path)]
-    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-    t0 = time.perf_counter()
-    with open(folder / "worker.log", "w", encoding="utf-8") as logf:
-        try:
-            proc = subprocess.run(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, timeout=TASK_TIMEOUT_S)
-            code = proc.returncode
-        except subprocess.TimeoutExpired:
-            code = None
-    if result_path.exists():
-        return json.loads(result_path.read_text(encoding="utf-8"))
-    tail = (folder / "worker.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:]
-    if code is None:
-        why = f"timed out after {TASK_TIMEOUT_S:.0f} s"
-    elif code < 0:
-        why = f"worker killed by signal {-code}"
-    else:
-        why = f"worker exited with status {code}"
-    return {"error": f"{why}: {tail[0] if tail else 'no output'}", "wall_s": time.perf_counter() - t0}
+JOB_RECORD = "job.json"
+MAX_ATTEMPTS = 2  # a failed job is run once more
 
 
-def _simulate_task(case: Case, captures: Path) -> dict[str, Any]:
-    folder = captures / case.key
-    if (folder / "mav0" / "cam0" / "data.csv").exists():
-        return {"capture": str(folder), "cached": True}
-    task = {"kind": "simulate", "case": case.__dict__, "capture": str(folder)}
-    return _run_child(task, captures / ".logs" / case.key)
+def _record_path(out: Path, case: Case, method: Method) -> Path:
+    return out / "runs" / case.key / method.name / JOB_RECORD
 
 
-def _method_task(case: Case, method: Method, capture: str, runs: Path) -> list[dict[str, Any]]:
-    folder = runs / case.key / method.name
-    task = {"kind": "method", "case": case.__dict__, "method": method.__dict__, "capture": capture, "out": str(folder)}
-    res = _run_child(task, folder)
-    if "rows" in res:
-        return res["rows"]
-    names = [method.name] + (["batch"] if method.refine else [])
-    return [error_row(case, name, res.get("error", "no result")) for name in names]
+def load_done(out: Path, case: Case, method: Method) -> dict[str, Any] | None:
+    """The record of this job from an earlier run into `out`, when it is for the same job and has no error."""
+    path = _record_path(out, case, method)
+    try:
+        rec = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if rec.get("job") != job_spec(case, method) or any("error" in r for r in rec.get("rows", [{"error": 1}])):
+        return None
+    return rec
 
 
-def error_row(case: Case, method: str, error: str) -> dict[str, Any]:
-    """A results.json row for a run that produced no estimate."""
-    from vio.bench.report import empty_row
+def _save(out: Path, case: Case, method: Method, res: dict[str, Any], attempts: int, scheduler: str) -> None:
+    """Write the files a remote worker sent back, then the job's record (last: its presence means done)."""
+    folder = out / "runs" / case.key / method.name
+    for rel, data in (res.get("files") or {}).items():
+        target = (folder / rel).resolve()
+        if folder.resolve() in target.parents:  # never outside the job's folder
+            write_bytes(target, data)
+    rec = {
+        "job": job_spec(case, method),
+        "rows": res["rows"],
+        "attempts": attempts,
+        "wall_s": res.get("wall_s"),
+        "host": res.get("host"),
+        "scheduler": scheduler,
+    }
+    write_json(folder / JOB_RECORD, rec)
 
-    row = empty_row(case, method)
-    row["error"] = error
-    return row
+
+def _minutes(s: float) -> str:
+    return f"{s / 60:.1f} min" if s >= 60 else f"{s:.0f} s"
 
 
-def run_suite(suite: Suite, out: str | os.PathLike[str], jobs: int = 2) -> list[dict[str, Any]]:
-    """Simulate every capture of `suite` and run every method on it; writes results.json, results.md, plots/."""
+def run_suite(
+    suite: Suite,
+    out: str | os.PathLike[str],
+    jobs: int = 2,
+    scheduler: str = "local",
+    captures: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run every method of `suite` on every case; writes results.json, results.md, plots/ under `out`.
+
+    `scheduler`: `local`, `dask` or a Dask scheduler address; `jobs`: parallel jobs (local threads or LocalCluster
+    workers; an existing cluster has its own). `captures`: a folder every worker can read and write, for the
+    captures (default: `out/captures`, or each remote worker's own temporary cache). `progress` gets one line
+    per finished job (counts, elapsed time, ETA); default: the log at INFO.
+    """
     from vio.bench.report import write_reports
 
-    out = ensure_dir(out)
-    captures, runs = out / "captures", out / "runs"
-    jobs = max(1, int(jobs))
+    out = ensure_dir(out).resolve()
+    say = progress or log.info
+    # method-major order: the first jobs to start are on different captures, which simulate in parallel
+    order = [(ci, mi) for mi in range(len(suite.methods)) for ci in range(len(suite.cases))]
+    results: dict[tuple[int, int], list[dict[str, Any]]] = {}
+    records: dict[tuple[int, int], dict[str, Any]] = {}
+    for ci, mi in order:
+        rec = load_done(out, suite.cases[ci], suite.methods[mi])
+        if rec is not None:
+            results[(ci, mi)] = rec["rows"]
+            records[(ci, mi)] = {k: v for k, v in rec.items() if k != "rows"} | {"resumed": True}
+    todo = [j for j in order if j not in results]
+    total, resumed = len(order), len(results)
     t0 = time.perf_counter()
-    log.info("bench %s: %d captures x %d methods, %d jobs", suite.name, len(suite.cases), len(suite.methods), jobs)
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
-        sims = list(pool.map(lambda c: _simulate_task(c, captures), suite.cases))
-        futures = []
-        rows: list[dict[str, Any]] = []
-        for case, sim in zip(suite.cases, sims, strict=True):
-            if "error" in sim:
-                log.warning("bench: simulating %s failed: %s", case.key, sim["error"])
-                for m in suite.methods:
-                    names = [m.name] + (["batch"] if m.refine else [])
-                    rows += [error_row(case, n, f"simulation failed: {sim['error']}") for n in names]
-                continue
-            for m in suite.methods:
-                futures.append(pool.submit(_method_task, case, m, sim["capture"], runs))
-        for f in futures:
-            rows += f.result()
+    sch = open_scheduler(scheduler, out, jobs, captures)
+    say(
+        f"bench {suite.name}: {total} jobs ({len(suite.cases)} captures x {len(suite.methods)} methods) on "
+        f"{sch.name} with {sch.workers} workers" + (f"; {resumed} done before, resumed" if resumed else "")
+    )
+    pending: dict[Any, tuple[tuple[int, int], int]] = {}
+
+    def submit(j: tuple[int, int], attempt: int) -> None:
+        case, method = suite.cases[j[0]], suite.methods[j[1]]
+        pending[sch.submit(job_spec(case, method), f"{case.key}-{method.name}")] = (j, attempt)
+
+    failed = retried = 0
+    try:
+        for j in todo:
+            submit(j, 1)
+        while pending:
+            done, _ = sch.wait_first(set(pending))
+            for fut in done:
+                j, attempt = pending.pop(fut)
+                case, method = suite.cases[j[0]], suite.methods[j[1]]
+                label = f"{case.key} {method.name}"
+                try:
+                    res = fut.result()
+                except Exception as exc:  # noqa: BLE001 - a lost worker or a task that could not run
+                    why = f"{exc.__class__.__name__}: {exc}".splitlines()[0][:300]
+                    names = [method.name] + (["batch"] if method.refine else [])
+                    res = {"rows": [error_row(case, n, f"job failed: {why}") for n in names]}
+                errors = [r["error"] for r in res["rows"] if "error" in r]
+                if errors and attempt < MAX_ATTEMPTS:
+                    retried += 1
+                    say(f"bench {suite.name}: {label} failed ({errors[0]}); retrying")
+                    submit(j, attempt + 1)
+                    continue
+                failed += bool(errors)
+                _save(out, case, method, res, attempt, sch.name)
+                results[j] = res["rows"]
+                records[j] = {"job": job_spec(case, method), "attempts": attempt, "wall_s": res.get("wall_s"),
+                              "host": res.get("host"), "resumed": False}  # fmt: skip
+                n_done, elapsed = len(results), time.perf_counter() - t0
+                eta = elapsed / (n_done - resumed) * (total - n_done)
+                say(
+                    f"bench {suite.name}: {n_done}/{total} jobs done"
+                    + (f" ({failed} failed)" if failed else "")
+                    + f", {_minutes(elapsed)} elapsed, ETA {_minutes(eta)}: {label}"
+                    + (f" FAILED after {attempt} attempts: {errors[0]}" if errors else "")
+                )
+    except BaseException:
+        sch.cancel(set(pending))
+        say(f"bench {suite.name}: stopped with {len(results)}/{total} jobs done; run it again to resume")
+        raise
+    finally:
+        sch.close()
     wall = time.perf_counter() - t0
+    rows = [r for ci in range(len(suite.cases)) for mi in range(len(suite.methods)) for r in results[(ci, mi)]]
+    jobs_meta = [records[(ci, mi)] for ci in range(len(suite.cases)) for mi in range(len(suite.methods))]
+    meta = {"suite": suite.name, "scheduler": sch.name, "workers": sch.workers, "wall_s": wall,
+            "jobs": total, "resumed": resumed, "retried": retried, "failed": failed}  # fmt: skip
     log.info("bench %s: %d rows in %.0f s", suite.name, len(rows), wall)
-    write_reports(suite, rows, out, wall_s=wall, jobs=jobs)
+    write_reports(suite, rows, out, wall_s=wall, jobs=sch.workers, meta=meta, job_records=jobs_meta)
     return rows
 
 
-def run_bench(suite: str, out: str | os.PathLike[str], jobs: int = 2) -> list[dict[str, Any]]:
-    """`vio bench --suite NAME --out DIR --jobs N`: run a named suite (`quick`, `full`, or `tiny`)."""
-    return run_suite(get_suite(suite), out, jobs=jobs)
+def run_bench(
+    suite: str,
+    out: str | os.PathLike[str],
+    jobs: int = 2,
+    scheduler: str = "local",
+    captures: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """`vio bench --suite NAME|FILE.yaml --out DIR [--jobs N] [--scheduler local|dask|ADDRESS]`."""
+    return run_suite(get_suite(suite), out, jobs=jobs, scheduler=scheduler, captures=captures, progress=progress)

@@ -275,17 +275,42 @@ def model_markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _meta_line(meta: dict[str, Any]) -> str:
+    """Where the suite ran, and what was resumed, retried or failed."""
+    line = f"Scheduler: {meta['scheduler']} ({meta['workers']} workers); {meta['jobs']} jobs"
+    extra = [f"{meta[k]} {k}" for k in ("resumed", "retried", "failed") if meta.get(k)]
+    return "\n" + line + (f" ({', '.join(extra)})" if extra else "") + ".\n"
+
+
 def _fmt_mm(v: float | None, digits: int = 2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
 def write_reports(
-    suite: Any, rows: list[dict[str, Any]], out: Path, wall_s: float | None = None, jobs: int = 0
+    suite: Any,
+    rows: list[dict[str, Any]],
+    out: Path,
+    wall_s: float | None = None,
+    jobs: int = 0,
+    meta: dict[str, Any] | None = None,
+    job_records: list[dict[str, Any]] | None = None,
 ) -> None:
-    """results.json, results.md and (unless the suite says not to) plots/ under `out`."""
+    """results.json (rows, statistics, job records, `bench` facts), results.md and (unless the suite says not to)
+    plots/ under `out`."""
+    from vio.bench.stats import bench_stats, stats_markdown
+
     clean = [{k: _clean(v) for k, v in r.items()} for r in rows]
-    write_json(out / "results.json", {"runs": clean})
-    text = markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs) + rpe_markdown(collect_rpe(out))
+    stats = bench_stats(clean)
+    data: dict[str, Any] = {"runs": clean, "stats": stats}
+    if job_records is not None:
+        data["jobs"] = job_records
+    if meta is not None:
+        data["bench"] = meta
+    write_json(out / "results.json", data)
+    text = markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs)
+    if meta is not None:
+        text += _meta_line(meta)
+    text += stats_markdown(stats) + rpe_markdown(collect_rpe(out))
     text += model_markdown(clean)
     write_text(out / "results.md", text)
     if getattr(suite, "plots", True):

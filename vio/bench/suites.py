@@ -4,22 +4,40 @@ A *case* is one simulated capture; a *method* is one way of estimating the traje
 named rows of `results.json`: `imu_only` (the thesis's dead reckoning), `vio` (the online estimator as shipped),
 `batch` (full Levenberg-Marquardt over the same graph, the optimum), `vision_only` (the same frontend and graph
 without IMU factors, scored after Sim3 alignment because its scale is unknown), and variants of `vio` given as
-`--set`-style config overrides (for example the fixed-lag smoother).
+named presets or `--set`-style config overrides (for example the fixed-lag smoother).
+
+Suites are data: `vio/bench/suite_files/NAME.yaml` (packaged), or any YAML file of the same form given by path:
+
+    name: quick
+    notes: free text
+    plots: true                     # optional, default true
+    methods:                        # Method fields
+      - {name: vio, kind: vio, refine: true, presets: [fixed_lag], overrides: ["smoother.lag_s=3"]}
+    cases:                          # Case fields; `grid` lists values whose product makes cases
+      - {scenario: orbit, seed: 1, imu: phone, duration_s: 15.0}
+      - grid: {scenario: [orbit, room], imu: [phone], seed: [0, 1]}
+        duration_s: 15.0
+        if_exists: true             # skip when `scenario` names a file that is absent
+A grid's cases come in the order scenario, imu, seed, then any other field (the last varies fastest).
+`{shared}` in a scenario is the project's `../shared` folder.
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 from vio.errors import ConfigError
 
-SUITES = ("tiny", "quick", "full", "drift60", "model", "parts")
+SUITE_DIR = Path(__file__).resolve().parent / "suite_files"
+SUITES = ("tiny", "quick", "full", "drift60", "model", "parts")  # the packaged suites, smallest first
 PARTS = ("cube", "cube_features", "freeform")
 ROOT = Path(__file__).resolve().parents[2]
+SHARED = ROOT.parent / "shared"
 # A real drone trajectory (EuRoC V1_01 ground truth) driving the simulator: "trajectories from files".
-EUROC_GT_FILE = ROOT.parent / "shared" / "data" / "euroc_v1_01" / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+EUROC_GT_FILE = SHARED / "data" / "euroc_v1_01" / "mav0" / "state_groundtruth_estimate0" / "data.csv"
 
 
 @dataclass(frozen=True)
@@ -50,7 +68,7 @@ class Case:
 @dataclass(frozen=True)
 class Method:
     name: str  # the `method` column of results.json
-    kind: str  # imu_only | vio (vio also yields `batch` when refine is on) | vision_only
+    kind: str  # imu_only | vio (vio also yields `batch` when refine is on) | vision_only | model
     presets: tuple[str, ...] = ()  # named config presets (vio/presets/NAME.yaml), applied first
     overrides: tuple[str, ...] = ()  # `section.key=value` config overrides, applied after the presets
     refine: bool = False  # also produce the batch optimum (row `batch`) from the same run
@@ -74,38 +92,109 @@ FIXED_LAG = Method("vio_lag3s", "vio", presets=("fixed_lag",))
 # The part chain (run, model, measure, compare); with positions: known body positions at 2 Hz, 0.1 mm per axis.
 MODEL = Method("model", "model")
 MODEL_POSITIONS = Method("model_positions", "model", positions_sigma_m=1e-4)
-MODEL_SEEDS = [101, 102, 103, 104, 105]  # seeds no test uses
+MODEL_SEEDS = [101, 102, 103, 104, 105]  # seeds no test uses (suite_files/model.yaml lists them too)
+
+CASE_FIELDS = {f.name: f.type for f in fields(Case)}
+METHOD_FIELDS = {f.name for f in fields(Method)}
+GRID_ORDER = ("scenario", "imu", "seed", "duration_s", "part", "stills_hz", "images")
+_TYPES: dict[str, type] = {"scenario": str, "seed": int, "imu": str, "duration_s": float, "images": bool,
+                           "part": str, "stills_hz": float}  # fmt: skip
 
 
-def _grid(
-    scenarios: list[str], imus: list[str], seeds: list[int], duration_s: float, images: bool = True
-) -> tuple[Case, ...]:
-    return tuple(Case(s, seed, imu, duration_s, images) for s, imu, seed in itertools.product(scenarios, imus, seeds))
+def _value(where: str, key: str, v: Any) -> Any:
+    want = _TYPES[key]
+    if want is float and isinstance(v, int) and not isinstance(v, bool):
+        v = float(v)
+    if not isinstance(v, want) or (want is int and isinstance(v, bool)):
+        raise ConfigError(f"{where}: {key} must be {want.__name__}, got {v!r}")
+    return v.replace("{shared}", str(SHARED)) if key == "scenario" else v
+
+
+def _cases(where: str, entry: Any) -> list[Case]:
+    if not isinstance(entry, dict):
+        raise ConfigError(f"{where}: a case must be a mapping, got {entry!r}")
+    unknown = set(entry) - set(CASE_FIELDS) - {"grid", "if_exists"}
+    grid = entry.get("grid") or {}
+    if not isinstance(grid, dict):
+        raise ConfigError(f"{where}: grid must be a mapping of field: [values]")
+    unknown |= set(grid) - set(CASE_FIELDS)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown case field(s) {', '.join(sorted(unknown))}; known: {', '.join(CASE_FIELDS)}"
+        )
+    both = set(grid) & set(entry)
+    if both:
+        raise ConfigError(f"{where}: {', '.join(sorted(both))} given both in grid and as a single value")
+    fixed = {k: _value(where, k, v) for k, v in entry.items() if k in CASE_FIELDS}
+    axes = [k for k in GRID_ORDER if k in grid]
+    values = []
+    for k in axes:
+        vs = grid[k] if isinstance(grid[k], list) else [grid[k]]
+        values.append([_value(where, k, v) for v in vs])
+    missing = {"scenario", "seed", "imu", "duration_s"} - set(fixed) - set(axes)
+    if missing:
+        raise ConfigError(f"{where}: a case needs {', '.join(sorted(missing))}")
+    cases = [Case(**fixed, **dict(zip(axes, combo, strict=True))) for combo in itertools.product(*values)]
+    if entry.get("if_exists"):
+        cases = [c for c in cases if Path(c.scenario).exists()]
+    return cases
+
+
+def _method(where: str, entry: Any) -> Method:
+    if not isinstance(entry, dict) or "name" not in entry or "kind" not in entry:
+        raise ConfigError(f"{where}: a method must be a mapping with at least name and kind, got {entry!r}")
+    unknown = set(entry) - METHOD_FIELDS
+    if unknown:
+        raise ConfigError(f"{where}: unknown method field(s) {', '.join(sorted(unknown))}; known: "
+                          f"{', '.join(sorted(METHOD_FIELDS))}")  # fmt: skip
+    fixed = dict(entry)
+    for k in ("presets", "overrides"):
+        if not isinstance(fixed.get(k, []), list) or not all(isinstance(s, str) for s in fixed.get(k, [])):
+            raise ConfigError(f"{where}: {k} must be a list of strings")
+        fixed[k] = tuple(fixed.get(k, ()))
+    if "positions_sigma_m" in fixed:
+        fixed["positions_sigma_m"] = float(fixed["positions_sigma_m"])
+    return Method(**fixed)
+
+
+def load_suite(path: str | Path) -> Suite:
+    """A suite from a YAML file (the form in this module's docstring); one-line ConfigError for a bad file."""
+    import yaml
+
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the suite: {exc.strerror or exc}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a suite must be a mapping with name, methods and cases")
+    unknown = set(data) - {"name", "notes", "plots", "methods", "cases"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown suite key(s) {', '.join(sorted(unknown))}")
+    if not data.get("methods") or not data.get("cases"):
+        raise ConfigError(f"{path}: a suite needs a non-empty methods list and cases list")
+    methods = tuple(_method(f"{path}: methods[{i}]", m) for i, m in enumerate(data["methods"]))
+    names = [m.name for m in methods]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{path}: method names must be unique, got {names}")
+    cases = tuple(c for i, e in enumerate(data["cases"]) for c in _cases(f"{path}: cases[{i}]", e))
+    if len({c.key for c in cases}) != len(cases):
+        raise ConfigError(f"{path}: two cases describe the same capture")
+    return Suite(str(data.get("name") or path.stem), cases, methods, str(data.get("notes") or ""),
+                 bool(data.get("plots", True)))  # fmt: skip
 
 
 def get_suite(name: str) -> Suite:
-    """The named suite: `tiny` (tests), `quick` (under 15 min on 2 cores), `full` (the Monte-Carlo run),
-    `drift60` (the IMU-only baseline alone on 60 s captures without images: the thesis's failure, in a minute),
-    `model` (the cube's part model over 5 seeds, with and without known positions) and `parts` (the three
-    parts, the study's Table 2)."""
-    if name == "tiny":
-        return Suite("tiny", (Case("orbit", 0, "phone", 4.0),), (IMU_ONLY, VIO), "test-only", plots=True)
-    if name == "quick":
-        cases = _grid(["orbit", "figure8", "room"], ["phone"], [0], 15.0)
-        cases += (Case("orbit", 1, "phone", 15.0), Case("orbit", 0, "tactical", 15.0))
-        return Suite("quick", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY, FIXED_LAG), "5 captures of 15 s")
-    if name == "full":
-        cases = _grid(["orbit", "figure8", "room"], ["phone", "tactical"], [0, 1, 2, 3, 4], 60.0)
-        if EUROC_GT_FILE.exists():
-            cases += _grid([str(EUROC_GT_FILE)], ["phone"], [0, 1, 2], 60.0)
-        return Suite("full", cases, (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY, FIXED_LAG), "30-33 captures of 60 s")
-    if name == "drift60":
-        cases = _grid(["orbit", "figure8", "room"], ["phone", "tactical", "ideal"], [0, 1, 2], 60.0, images=False)
-        return Suite("drift60", cases, (IMU_ONLY,), "27 IMU-only captures of 60 s")
-    if name == "model":
-        cases = tuple(Case("orbit", s, "phone", 60.0, stills_hz=2.0) for s in MODEL_SEEDS)
-        return Suite("model", cases, (MODEL, MODEL_POSITIONS), "the cube from 5 captures of 60 s", plots=False)
-    if name == "parts":
-        cases = tuple(Case("orbit", 101, "phone", 60.0, part=p, stills_hz=2.0) for p in PARTS)
-        return Suite("parts", cases, (MODEL,), "the three parts from 60 s captures (seed 101)", plots=False)
-    raise ConfigError(f"unknown benchmark suite {name!r}; known: {', '.join(SUITES)}")
+    """A packaged suite by name, or a suite file by path. Packaged: `tiny` (tests), `quick` (under 15 min on 2
+    cores), `full` (the Monte-Carlo run), `drift60` (the IMU-only baseline alone on 60 s captures without images:
+    the thesis's failure, in a minute), `model` (the cube's part model over 5 seeds, with and without known
+    positions) and `parts` (the three parts, the study's Table 2)."""
+    if name.endswith((".yaml", ".yml")) or "/" in name:
+        return load_suite(name)
+    path = SUITE_DIR / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in SUITE_DIR.glob("*.yaml"))
+        raise ConfigError(f"unknown benchmark suite {name!r}; known: {', '.join(known)}, or a path to a YAML file")
+    return load_suite(path)
