@@ -2,9 +2,12 @@
 
 Android layout: `movie.mp4` (H.264), `frame_timestamps.txt` (one sensor-clock timestamp in ns per video frame,
 first field of each line), `gyro_accel.csv` (`Timestamp[nanosec],gx[rad/s],gy,gz,ax[m/s^2],ay,az[,Unix time]`, the
-accelerometer interpolated onto the gyro times by the app), `movie_metadata.csv` (per-frame camera metadata, not
-needed here). iOS layout: no `frame_timestamps.txt`; frame times are the first column of `movie_metadata.csv`, and
-timestamps are in seconds when the header says `[sec]`. Calibration: `--calib`, or `calib.yaml` in the folder.
+accelerometer interpolated onto the gyro times by the app), `movie_metadata.csv` (per-frame camera metadata;
+`readout_ns` reads its `Frame readout time[nanosec]`, the rolling-shutter readout). iOS layout: no
+`frame_timestamps.txt`; frame times are the first column of `movie_metadata.csv`, and timestamps are in seconds
+when the header says `[sec]`. Calibration: `--calib`, or `calib.yaml` in the folder. The video is decoded by PyAV
+(FFmpeg's H.264/HEVC decoders) in the sensor's orientation, which the calibration describes; a portrait
+recording's display rotation is not applied (`vio.readers.video_av`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from vio.errors import CaptureError
 from vio.readers.common import collect, frame_times, imu_from_table, make_capture, no_frames, resolve_calibration
 from vio.readers.tables import read_lines, read_table
 from vio.readers.video import VideoFrames, find_video, match_frame_count
+from vio.readers.video_av import AvVideoFrames, av_available
 from vio.records import ImuSeries
 
 
@@ -72,8 +76,28 @@ def _frames(folder: Path, warnings: list[str]) -> tuple[np.ndarray, Callable[[in
     video_path = folder / "movie.mp4" if (folder / "movie.mp4").is_file() else find_video(folder)
     if video_path is None:
         raise CaptureError("MARS folder has no movie.mp4", folder)
-    video = VideoFrames(video_path)
+    video = AvVideoFrames(video_path) if av_available() else VideoFrames(video_path)
     n = match_frame_count(video, len(table), times, warnings)
     table = table.select(slice(0, n))
     ft, idx = frame_times(table, warnings)
     return ft, lambda i: video(int(idx[i]))
+
+
+READOUT_COLUMN = "frame readout time[nanosec]"
+
+
+def readout_ns(folder: str | Path) -> int | None:
+    """The rolling-shutter readout time (top to bottom row), ns, from an Android MARS `movie_metadata.csv`: the
+    median of its `Frame readout time[nanosec]` column; None when the file or the column is absent."""
+    path = Path(folder) / "movie_metadata.csv"
+    if not path.is_file():
+        return None
+    lines, _ = read_lines(path)
+    header = [h.strip().lower() for h in lines[0].split(",")] if lines else []
+    if READOUT_COLUMN not in header:
+        return None
+    col = header.index(READOUT_COLUMN)
+    table = read_table(path, 0, [col], what="frame metadata")
+    values = table.values[:, 0] if len(table) else np.zeros(0)
+    values = values[np.isfinite(values) & (values > 0)]
+    return int(np.median(values)) if values.size else None

@@ -124,7 +124,8 @@ def simulate_options(
 
 def portrait_camera(cam_fn):
     """Camera pose function of the phone turned upright: the image turned 90 deg about the optical axis (image x
-    points down in the world, rows run vertically), so the rolling shutter sweeps sideways as on a real phone."""
+    points up in the world, y to the right; turning the frame 90 deg counter-clockwise shows it upright, the display
+    rotation `vio.writers.mars` stores), so the rolling shutter sweeps sideways as on a real phone."""
     cam_R_portrait = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
     def fn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
