@@ -27,7 +27,9 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from vio.sim.api import simulate
+    from vio.sim.phone import simulate_options
 
+    phone = simulate_options(args.camera, args.readout_ms, args.exposure_ms, args.time_offset_ms, args.imu_rate)
     simulate(
         args.scenario,
         args.out,
@@ -42,6 +44,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         stills_hz=args.stills,
         stills_size=args.stills_size,
         board=args.board,
+        mars=args.mars,
+        **phone,
     )
     return 0
 
@@ -149,6 +153,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stills", type=float, default=0.0, metavar="HZ", help="full-resolution stills rate (0: off)")
     p.add_argument("--stills-size", type=_size, default=(2016, 1512), metavar="WxH", help="stills size, px")
     p.add_argument("--board", help="calibration scenario's board: chessboard:COLSxROWS:SQUARE_MM | charuco:...")
+    p.add_argument(
+        "--camera",
+        choices=["default", "phone"],
+        default="default",
+        help="phone: rolling shutter, motion blur, auto exposure, noise, vignetting, clock offset, portrait, and a "
+        "100 Hz IMU with jitter, scale-factor and misalignment errors",
+    )
+    p.add_argument("--readout-ms", type=float, help="rolling-shutter readout, top to bottom row (phone: 20)")
+    p.add_argument("--exposure-ms", type=float, help="exposure per row, motion blur (phone: 10)")
+    p.add_argument("--time-offset-ms", type=float, help="camera clock offset, t_imu = t_cam + offset (phone: 15)")
+    p.add_argument("--imu-rate", type=float, metavar="HZ", help="IMU rate (default 200; phone: 100)")
+    p.add_argument("--mars", metavar="DIR", help="also write the capture as a MARS logger folder (H.264 video)")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")
