@@ -50,7 +50,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     rep = compare(args.model, args.cad, args.out, units=args.units)
     st = rep["deviation"]
     print(
-        f"tolerance window +{st['max_positive_mm']:.3f}/{st['max_negative_mm']:.3f} mm, std {st['std_mm']:.3f} mm, "
+        f"tolerance window {st['max_positive_mm']:+.3f}/{st['max_negative_mm']:+.3f} mm, std {st['std_mm']:.3f} mm, "
         f"RMS {st['rms_mm']:.3f} mm, completeness {100 * rep['completeness']:.1f} %; report: {args.out}/report.md"
     )
     return 0

@@ -1,8 +1,9 @@
-"""Hostile meshes for `vio compare` (issue 20): each must end with exit 0 and a report, or one `vio compare: error:`
-line; never a traceback or a hang, never a file written outside `--out`.
+"""Hostile meshes for `vio compare` and `vio measure` (issue 20): each must end with exit 0 and a report, or one
+`vio compare: error:` line; never a traceback or a hang, never a file written outside `--out`.
 
-The cases `vio compare` does not survive yet are marked xfail(strict) with what happens: the part-model stage
-(vio/model/) owns the fix, and the marker goes when it lands.
+Each case states which of the two it must end with (`EXPECT`; "either" where both are defensible), and a model
+that is compared despite a problem (NaN vertices left out, faces wound inside out) must say so in report.json's
+`warnings`. The CAD gets its own hostile cases: a CAD is refused with one `CAD:` line, never repaired.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from tests.conftest import ROOT
 from tests.fuzz.run import _snapshot
@@ -38,6 +40,23 @@ def _records(data: bytes) -> tuple[bytes, int]:
 
 
 def _mutate(name: str, good: bytes) -> bytes:
+    vertices, faces = _box()
+    if name == "far_away":  # 10 m from the CAD: registration must still find it (it is the same part)
+        return stl_bytes(vertices + [1.0e4, -3.0e3, 2.0e3], faces, header="far away, mm")
+    if name == "inverted_normals":
+        return stl_bytes(vertices, faces[:, ::-1], header="inside out, mm")
+    if name == "flat_sheet":  # the box squashed into its mid-plane
+        return stl_bytes(vertices * [1.0, 1.0, 0.0], faces, header="flat, mm")
+    if name.startswith("ply_") and name != "ply_billion_vertices":
+        rng = np.random.default_rng(3)
+        points = trimesh.Trimesh(vertices, faces).sample(2_000, seed=3) + rng.normal(0.0, 0.05, (2_000, 3))
+        if name == "ply_one_point":
+            points = points[:1]
+        elif name == "ply_points_on_a_line":
+            points = np.outer(np.linspace(-20.0, 20.0, 500), [1.0, 0.5, 0.2])
+        elif name == "ply_nan_points":
+            points[::7] = np.nan
+        return trimesh.PointCloud(points).export(file_type="ply", encoding="ascii")
     head, n = _records(good)
     body = bytearray(good[84:])
     if name == "billion_triangle_header":
@@ -67,49 +86,118 @@ def _mutate(name: str, good: bytes) -> bytes:
     raise ValueError(name)
 
 
-CASES = [
-    "billion_triangle_header",
-    "empty",
-    "ascii_garbage",
-    "ply_billion_vertices",
-    "duplicated_faces",
-    "some_zero_area",
-    pytest.param(
-        "all_zero_area", marks=pytest.mark.xfail(strict=True, reason="traceback: QhullError in register._frames")
-    ),
-    pytest.param(
-        "nan_vertices",
-        marks=pytest.mark.xfail(strict=True, reason="accepted without an error or a warning"),
-    ),
-    "huge_coordinate",
-]
+# How each hostile model must end: "error" (one line), "report" (exit 0), "either"; and what a report must warn of.
+EXPECT = {
+    "billion_triangle_header": "error",
+    "empty": "error",
+    "ascii_garbage": "error",
+    "ply_billion_vertices": "error",
+    "duplicated_faces": "either",
+    "some_zero_area": "report",
+    "all_zero_area": "error",
+    "nan_vertices": "report",
+    "huge_coordinate": "either",
+    "far_away": "report",
+    "inverted_normals": "report",
+    "flat_sheet": "report",
+    "ply_one_point": "error",
+    "ply_points_on_a_line": "error",
+    "ply_nan_points": "report",
+}
+WARNS = {"nan_vertices": "non-finite", "ply_nan_points": "non-finite", "inverted_normals": "inside out"}
+ERRORS = {"all_zero_area": "zero area", "ply_one_point": "1 finite points", "ply_points_on_a_line": "on a line"}
 
 
-@pytest.mark.parametrize("name", CASES)
-def test_vio_compare_on_a_hostile_mesh(name, tmp_path):
+def _no_constant(name: str) -> None:
+    raise AssertionError(f"report.json holds {name}")
+
+
+def _run(command: str, model: Path, cad: Path, out: Path) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "vio.cli", command, str(model), "--cad", str(cad), "--out", str(out)]
+    return subprocess.run(
+        [*cmd, "--units", "mm"] if model.suffix == ".ply" else cmd,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CASE_TIMEOUT_S,
+        preexec_fn=_limit_memory,
+    )
+
+
+def _ended_cleanly(res: subprocess.CompletedProcess, command: str, expect: str) -> bool:
+    """True for a report (exit 0), False for one error line (exit 2); fails on anything else."""
+    assert "Traceback" not in res.stderr, res.stderr[-1500:]
+    assert res.returncode in (0, 2), res.stderr[-1500:]
+    assert expect in ("either", "report" if res.returncode == 0 else "error"), res.stderr[-1500:]
+    if res.returncode == 2:
+        assert res.stderr.strip().splitlines()[-1].startswith(f"vio {command}: error: "), res.stderr[-1500:]
+    return res.returncode == 0
+
+
+def _files(tmp_path: Path, name: str) -> tuple[Path, Path]:
     vertices, faces = _box()
     cad = tmp_path / "cad.stl"
     cad.write_bytes(stl_bytes(vertices, faces, header="box 40x30x20 mm"))
-    suffix = ".ply" if name.startswith("ply") else ".stl"
-    model = tmp_path / f"model{suffix}"
+    model = tmp_path / f"model{'.ply' if name.startswith('ply') else '.stl'}"
     model.write_bytes(_mutate(name, cad.read_bytes()))
+    return model, cad
+
+
+@pytest.mark.parametrize("name", list(EXPECT))
+def test_vio_compare_on_a_hostile_mesh(name, tmp_path):
+    model, cad = _files(tmp_path, name)
     out = tmp_path / "out"
     before = _snapshot(tmp_path, out)
-    cmd = [sys.executable, "-m", "vio.cli", "compare", str(model), "--cad", str(cad), "--out", str(out)]
-    res = subprocess.run(
-        cmd, cwd=ROOT, capture_output=True, text=True, timeout=CASE_TIMEOUT_S, preexec_fn=_limit_memory
-    )
-    assert "Traceback" not in res.stderr, res.stderr[-1500:]
-    assert res.returncode in (0, 2), res.stderr[-1500:]
+    res = _run("compare", model, cad, out)
     assert _snapshot(tmp_path, out) == before  # only --out written
-    if res.returncode == 2:
-        assert res.stderr.strip().splitlines()[-1].startswith("vio compare: error: ")
+    if not _ended_cleanly(res, "compare", EXPECT[name]):
+        assert ERRORS.get(name, "") in res.stderr.strip().splitlines()[-1]
+        assert not out.exists()  # nothing half-written
         return
-    report = json.loads((out / "report.json").read_text())
-    text = json.dumps(report)
-    assert "NaN" not in text and "Infinity" not in text
-    if name == "nan_vertices":  # a model with NaN coordinates must not pass for a perfect match
-        pytest.fail("a model with NaN vertices was compared without an error or warning")
+    report = json.loads((out / "report.json").read_text(), parse_constant=_no_constant)  # no NaN or Infinity
+    assert sorted(p.name for p in out.iterdir()) == report["files"]
+    assert any(WARNS[name] in w for w in report["warnings"]) if name in WARNS else not report["warnings"]
+    if name in ("far_away", "inverted_normals"):  # the same part: a perfect match, wherever and however wound
+        assert report["deviation"]["rms_mm"] < 1e-3 and report["completeness"] > 0.99
+
+
+@pytest.mark.parametrize(
+    "name", ["all_zero_area", "nan_vertices", "inverted_normals", "ply_one_point", "ply_points_on_a_line"]
+)
+def test_vio_measure_on_a_hostile_mesh(name, tmp_path):
+    model, cad = _files(tmp_path, name)
+    out = tmp_path / "out"
+    res = _run("measure", model, cad, out)
+    if not _ended_cleanly(res, "measure", EXPECT[name]):
+        assert ERRORS[name] in res.stderr.strip().splitlines()[-1] and not out.exists()
+        return
+    report = json.loads((out / "measure.json").read_text())
+    assert any(WARNS[name] in w for w in report["warnings"])
+    assert sorted(round(d["measured"], 2) for d in report["dimensions"]) == [20.0, 30.0, 40.0]
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("nan_vertices", "non-finite"),
+        ("all_zero_area", "zero area"),
+        ("empty", "not an STL"),
+        ("ascii_garbage", "STL"),
+        ("billion_triangle_header", "STL"),
+        ("flat_sheet", "not watertight"),
+    ],
+)
+def test_vio_compare_refuses_a_hostile_cad(name, message, tmp_path):
+    vertices, faces = _box()
+    model = tmp_path / "model.stl"
+    model.write_bytes(stl_bytes(vertices, faces, header="box 40x30x20 mm"))
+    cad = tmp_path / "cad.stl"
+    cad.write_bytes(_mutate(name, model.read_bytes()))
+    res = _run("compare", model, cad, tmp_path / "out")
+    assert not _ended_cleanly(res, "compare", "error")
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith("vio compare: error: CAD: ") and message in line, line
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_model_path_that_is_a_symlink_loop_or_a_folder(tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,13 +25,57 @@ log = logging.getLogger(__name__)
 SAMPLES = 200_000  # points sampled on a model mesh for the fits
 
 
-def scale_sigma_beside(model_path: Path) -> float | None:
-    """The run's scale uncertainty recorded in the model.json next to a model written by `vio model`, if any."""
-    meta = model_path.with_name("model.json")
-    if not meta.is_file():
-        return None
-    value = json.loads(meta.read_text(encoding="utf-8")).get("scale_sigma_rel")
-    return None if value is None else float(value)
+@dataclass(frozen=True)
+class RunTrust:
+    """What the model.json beside a model (written by `vio model`) says about the run it was built from."""
+
+    scale_sigma_rel: float | None  # the run's relative scale sigma (1 sigma, factor graph), None when unknown
+    run_status: str | None  # ok | degraded | failed (run.json's `status`), None without a run (or a model.json)
+    reasons: tuple[str, ...]  # run.json's `reasons` when the run is not ok and its run.json is found
+    run_dir: str | None  # the run folder model.json names
+    model_warnings: tuple[str, ...]  # model.json's own `warnings` (e.g. a mesh that is not watertight)
+
+
+def run_trust_beside(model_path: Path) -> RunTrust:
+    """The run's scale uncertainty and health from the model.json next to a model written by `vio model` (and the
+    run.json it names, for the reasons); all empty when there is no model.json. A model.json that is not valid JSON
+    is a ModelError: the scale's trust would be unknown."""
+    meta_path = model_path.with_name("model.json")
+    if not meta_path.is_file():
+        return RunTrust(None, None, (), None, ())
+    meta = _json_object(meta_path)
+    sigma = meta.get("scale_sigma_rel")
+    status, run_dir = meta.get("run_status"), meta.get("run")
+    reasons: tuple[str, ...] = ()
+    if status not in (None, "ok"):
+        run_json = _run_json(model_path, run_dir)
+        if run_json is None:
+            log.warning("%s: the run's run.json was not found; its reasons are unknown", meta_path)
+        else:
+            reasons = tuple(str(r) for r in _json_object(run_json).get("reasons") or ())
+    warnings = tuple(str(w) for w in meta.get("warnings") or ())
+    if not isinstance(sigma, (int, float)) or not np.isfinite(sigma) or sigma < 0:
+        sigma = None
+    return RunTrust(sigma, None if status is None else str(status), reasons, run_dir, warnings)
+
+
+def _json_object(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelError(f"{path}: not a readable JSON file ({exc})") from None
+    if not isinstance(data, dict):
+        raise ModelError(f"{path}: expected a JSON object")
+    return data
+
+
+def _run_json(model_path: Path, run_dir: object) -> Path | None:
+    """run.json of the run model.json names (as given, or relative to the model's folder), or of OUT/run (where
+    `vio model` runs `vio run` itself)."""
+    candidates = [model_path.parent / "run"]
+    if isinstance(run_dir, str) and run_dir:
+        candidates[:0] = [Path(run_dir), model_path.parent / run_dir]
+    return next((c / "run.json" for c in candidates if (c / "run.json").is_file()), None)
 
 
 def measure_file(
@@ -46,14 +91,39 @@ def measure_file(
     """Measure a model file (mesh or point cloud): with a CAD, registered to it first (rigid, no scale) so the
     CAD says what to measure and the nominals. The scale uncertainty is `scale_sigma_rel`, else the one in the
     model.json beside the model (from the run's factor graph), else 0 with a warning. Returns the inspection
-    report (markdown); with `out_dir` also writes measure.md and measure.json there."""
+    report (markdown); with `out_dir` also writes measure.md and then measure.json there.
+
+    The run's health comes from that model.json too: a `failed` run is refused (ModelError, nothing written); from a
+    `degraded` one every dimension is flagged, with a warning at the top of the report and in the log."""
     model_path = Path(model_path)
-    model, file_units = load_model(model_path)
+    trust = run_trust_beside(model_path)
+    why = "; ".join(trust.reasons) or "reasons not found"
+    if trust.run_status == "failed":
+        raise ModelError(
+            f"{model_path}: built from a run that failed ({why}); its scale cannot be trusted: not measured"
+        )
+    warnings: list[str] = []
+    flags: tuple[str, ...] = ()
+    if trust.run_status == "degraded":
+        warnings.append(
+            f"the run this model was built from ({trust.run_dir}) was degraded ({why}): its scale, and so every "
+            "dimension here, may be off by more than the stated U95"
+        )
+        flags = ("degraded run",)
+    warnings += [f"model.json: {w}" for w in trust.model_warnings]
+    for w in warnings:
+        log.warning("%s: %s", model_path, w)
+    loaded = load_model(model_path)  # logs its own warnings
+    model = loaded.geometry
+    warnings += loaded.warnings
+    if loaded.inside_out:  # the fits take face normals as outward
+        model.invert()
+        warnings[-1] += "; its normals are turned outward for the fits"
     cad = load_cad(cad_path, "mm") if cad_path is not None else None
     if cad is not None:
-        units, _ = resolve_units(model, cad, units, file_units, model_path)
+        units, _ = resolve_units(model, cad, units, loaded.file_units, model_path)
     else:
-        units = units or file_units or "mm"
+        units = units or loaded.file_units or "mm"
     rng = np.random.default_rng(seed)
     scale_mm = UNITS_TO_MM[units]
     if hasattr(model, "faces") and len(model.faces):
@@ -62,13 +132,16 @@ def measure_file(
         pts, nrm = np.asarray(model.vertices, float) * scale_mm, None
     notes = [f"model {model_path.name}: {len(pts)} points ({units})"]
     if cad is not None:
-        reg = register(pts, cad, rng=rng)
+        try:
+            reg = register(pts, cad, rng=rng)
+        except ModelError as exc:
+            raise ModelError(f"{model_path}: {exc}") from None
         R, t = reg.cad_T_model[:3, :3], reg.cad_T_model[:3, 3]
         pts = pts @ R.T + t
         nrm = None if nrm is None else nrm @ R.T
         notes.append(f"registered to {Path(cad_path).name}: RMS {reg.rms_mm:.3f} mm (rigid, no scale)")
     if scale_sigma_rel is None:
-        scale_sigma_rel = scale_sigma_beside(model_path)
+        scale_sigma_rel = trust.scale_sigma_rel
         if scale_sigma_rel is None:
             log.warning("no scale uncertainty given or found beside the model; U95 leaves the scale out")
             notes.append("scale uncertainty unknown: not included in U95")
@@ -79,9 +152,11 @@ def measure_file(
     dims = measure(pts, nrm, shape, cad, scale_sigma_rel, u_model_mm, base_is_closure=base_closed)
     if not dims:
         raise ModelError(f"{model_path}: no dimension could be measured as a {shape}")
-    text = inspection_report(dims, f"Inspection report: {model_path.name}", tuple(notes))
+    dims = [replace(d, flags=flags) for d in dims]
+    title = f"Inspection report: {model_path.name}"
+    text = inspection_report(dims, title, tuple(notes), tuple(warnings))
     if out_dir is not None:
         out = ensure_dir(out_dir)
-        write_json(out / "measure.json", report_dict(dims, tuple(notes)))
         write_text(out / "measure.md", text)
+        write_json(out / "measure.json", report_dict(dims, tuple(notes), tuple(warnings), trust.run_status))
     return text

@@ -28,6 +28,7 @@ class Dimension:
     inliers: int  # model points used by the fit(s)
     rms_mm: float  # RMS residual of the fit(s), mm
     note: str = ""  # e.g. a face pair's non-parallelism, or "base: closure plane"
+    flags: tuple[str, ...] = ()  # reasons not to trust the row as stated, e.g. "degraded run"
 
 
 def dimension(
@@ -79,26 +80,40 @@ def curved_name(fit: Fit) -> str:
     return f"{fit.kind} along {_axis_name(axis).lstrip('+-')} at {'xyz'[j]}={p[j]:.2f} {'xyz'[k]}={p[k]:.2f}"
 
 
-def report_dict(dimensions: list[Dimension], notes: tuple[str, ...] = ()) -> dict:
-    """A JSON-serialisable summary: the dimensions (every field), the coverage factor and notes."""
-    return {"k": K95, "dimensions": [asdict(d) for d in dimensions], "notes": list(notes)}
+def report_dict(
+    dimensions: list[Dimension],
+    notes: tuple[str, ...] = (),
+    warnings: tuple[str, ...] = (),
+    run_status: str | None = None,
+) -> dict:
+    """A JSON-serialisable summary: the run's status (None without a run), warnings (one line each), the coverage
+    factor, the dimensions (every field, `flags` as a list) and notes."""
+    rows = [{**asdict(d), "flags": list(d.flags)} for d in dimensions]
+    return {"run_status": run_status, "warnings": list(warnings), "k": K95, "dimensions": rows, "notes": list(notes)}
 
 
 def inspection_report(
-    dimensions: list[Dimension], title: str = "Inspection report", notes: tuple[str, ...] = ()
+    dimensions: list[Dimension],
+    title: str = "Inspection report",
+    notes: tuple[str, ...] = (),
+    warnings: tuple[str, ...] = (),
 ) -> str:
-    """A markdown inspection report: one row per dimension with nominal, measured, deviation and U95."""
+    """A markdown inspection report: the warnings first, then one row per dimension with nominal, measured,
+    deviation and U95 (a flagged row's note starts with its flags in capitals)."""
 
     def num(x: float | None, digits: int = 3) -> str:
         return "" if x is None else f"{x:.{digits}f}"
 
-    lines = [f"# {title}", "", "| # | feature | kind | nominal | measured | deviation | U95 (k=1.96) | u_fit | "
+    lines = [f"# {title}", ""]
+    lines += [line for w in warnings for line in (f"> **Warning:** {w}", ">")][:-1]
+    lines += [""] if warnings else []
+    lines += ["| # | feature | kind | nominal | measured | deviation | U95 (k=1.96) | u_fit | "
              "u_scale | u_model | unit | points | RMS mm | note |", "|" + "---|" * 14]  # fmt: skip
     for i, d in enumerate(dimensions, 1):
-        c = d.components
+        c, note = d.components, "; ".join([*(f.upper() for f in d.flags), *([d.note] if d.note else [])])
         row = [str(i), d.name, d.kind, num(d.nominal), num(d.measured), num(d.deviation), num(d.U95),
                num(c["u_fit"], 4), num(c["u_scale"], 4), num(c["u_model"], 4), d.units, str(d.inliers),
-               num(d.rms_mm, 4), d.note]  # fmt: skip
+               num(d.rms_mm, 4), note]  # fmt: skip
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", "U95 = 1.96 sqrt(u_fit^2 + u_scale^2 + u_model^2): fit residuals, trajectory scale, reconstruction."]
     return "\n".join(lines + [f"- {n}" for n in notes]) + "\n"

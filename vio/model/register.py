@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,10 @@ def register(
     points = points[np.isfinite(points).all(axis=1)]
     if len(points) < 10:
         raise ModelError(f"the model has {len(points)} finite points; at least 10 are needed to register it")
+    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)  # (3,) along the principal axes
+    if spread[1] <= 1e-6 * spread[0] or spread[0] == 0.0:
+        where = "at one point" if spread[0] == 0.0 else "on a line"
+        raise ModelError(f"the model's {len(points)} points all lie {where}: no surface to register to the CAD")
     rng = rng if rng is not None else np.random.default_rng(0)
     index = index if index is not None else build_index(cad.vertices, cad.faces)
     fine = points[rng.choice(len(points), min(fine_points, len(points)), replace=False)]
@@ -103,10 +108,19 @@ def register(
 
 
 def _frames(points: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{kind: (box_T_frame (4, 4), extents (3,))} for the oriented bounding box and the principal axes."""
+    """{kind: (box_T_frame (4, 4), extents (3,))} for the oriented bounding box and the principal axes.
+
+    Points in a plane (a scan of one face) have no hull volume: trimesh then warns or, for some inputs, fails in
+    Qhull, and the principal axes alone are used."""
     out = {}
-    to_box, extents = trimesh.bounds.oriented_bounds(points)
-    out["obb"] = (np.asarray(to_box, dtype=np.float64), np.asarray(extents, dtype=np.float64))
+    try:
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            to_box, extents = trimesh.bounds.oriented_bounds(points)
+        if np.isfinite(to_box).all() and np.isfinite(extents).all():
+            out["obb"] = (np.asarray(to_box, dtype=np.float64), np.asarray(extents, dtype=np.float64))
+    except Exception as exc:  # scipy's QhullError and trimesh's errors on flat or tiny point sets
+        log.debug("no oriented bounding box (%s: %s); principal axes only", type(exc).__name__, exc)
     centre = points.mean(axis=0)
     _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
     if np.linalg.det(vt) < 0:
@@ -124,6 +138,8 @@ def _candidates(model: np.ndarray, cad_vertices: np.ndarray) -> list[tuple[str, 
     rotations = box_rotations()
     cad_frames = _frames(cad_vertices)
     for kind, (modelbox_T_model, model_ext) in _frames(model).items():
+        if kind not in cad_frames:
+            continue
         cadbox_T_cad, cad_ext = cad_frames[kind]
         mismatch = np.array([np.abs(np.abs(r) @ model_ext - cad_ext).max() for r in rotations]) / cad_ext.max()
         keep = np.flatnonzero(mismatch <= mismatch.min() + 0.05)

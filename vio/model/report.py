@@ -12,6 +12,7 @@ import logging
 import os
 import re
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -62,8 +63,9 @@ def compare(
     if (units is not None and units not in UNITS_TO_MM) or cad_units not in UNITS_TO_MM:
         raise ModelError(f"unknown units {units!r}; use one of {', '.join(UNITS_TO_MM)}")
     cad = load_cad(cad_path, cad_units)
-    model, file_units = load_model(model_path)
-    units, units_source = resolve_units(model, cad, units, file_units, model_path)
+    loaded = load_model(model_path)
+    model, warnings = loaded.geometry, list(loaded.warnings)  # signed deviations do not depend on its winding
+    units, units_source = resolve_units(model, cad, units, loaded.file_units, model_path)
     model.apply_scale(UNITS_TO_MM[units])
     rng = np.random.default_rng(seed)
     points = dev.model_points(model, sampling, samples, rng)
@@ -72,7 +74,10 @@ def compare(
 
     t0 = time.perf_counter()
     cad_index = build_index(cad.vertices, cad.faces)
-    reg = register(points, cad, index=cad_index, rng=rng)
+    try:
+        reg = register(points, cad, index=cad_index, rng=rng)
+    except ModelError as exc:
+        raise ModelError(f"{model_path}: {exc}") from None
     timings["register_s"] = time.perf_counter() - t0
     model.apply_transform(reg.cad_T_model)
     points = points @ reg.cad_T_model[:3, :3].T + reg.cad_T_model[:3, 3]
@@ -131,6 +136,7 @@ def compare(
         "quality": quality,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "files": sorted([*files, "report.md", "report.json"]),
+        "warnings": warnings,
     }
     out = ensure_dir(out_dir)
     for file_name, data in files.items():
@@ -148,20 +154,52 @@ def load_cad(path: str | os.PathLike[str], units: str) -> trimesh.Trimesh:
     try:
         vertices, faces = read_stl_mesh(path)
     except PartError as exc:
-        raise ModelError(f"CAD: {exc}") from None
+        raise ModelError(f"CAD: {_cad_problem(path) or exc}") from None
     return trimesh.Trimesh(vertices * UNITS_TO_MM[units], faces, process=False)
 
 
-def load_model(path: str | os.PathLike[str]) -> tuple[trimesh.Trimesh | trimesh.PointCloud, str | None]:
-    """(the model as a mesh or a point cloud in the file's units and frame, the units its header states or None)."""
+@dataclass(frozen=True)
+class LoadedModel:
+    """A model file as read: its geometry in the file's units and frame, and what loading had to leave out."""
+
+    geometry: trimesh.Trimesh | trimesh.PointCloud  # the file's units and frame; only finite coordinates
+    file_units: str | None  # the length unit its header states ("mm" | "m"), or None
+    warnings: tuple[str, ...]  # one line each: what was left out, or looks wrong (also logged)
+    inside_out: bool  # a mesh whose faces are wound so that their normals point inward
+
+
+def _cad_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why an STL that failed as a CAD failed, when the reader's own reason hides it: trimesh drops triangles with
+    non-finite vertices and the mesh then reads as merely not watertight; triangles all of zero area likewise."""
+    try:
+        mesh = trimesh.load(str(path), file_type="stl", process=False)
+        tri = np.asarray(mesh.triangles, dtype=np.float64)
+    except Exception:  # not an STL at all: the reader's reason stands
+        return None
+    if len(tri) == 0:
+        return None
+    bad = ~np.isfinite(tri).all(axis=(1, 2))
+    if bad.any():
+        return f"{path}: {int(bad.sum())} of {len(tri)} triangles have a non-finite vertex coordinate (NaN or Inf)"
+    with np.errstate(all="ignore"):
+        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area2 > 0).any():
+        return f"{path}: all {len(tri)} triangles have zero area: the CAD has no surface"
+    return None
+
+
+def load_model(path: str | os.PathLike[str]) -> LoadedModel:
+    """Read a model (mesh or point cloud). Triangles with a non-finite vertex and non-finite points are left out with
+    a warning; a file with nothing left, a mesh without faces or whose triangles all have zero area is a ModelError
+    (one line naming the file). A mesh wound inside out is kept as it is, with a warning and `inside_out` set."""
     path = Path(path)
     try:
         head = path.read_bytes()[:4096]
     except OSError as exc:
         raise ModelError(f"{path}: cannot read the model ({exc.strerror or exc})") from None
     kind = path.suffix.lower().lstrip(".")
-    try:
-        loaded = trimesh.load(str(path), file_type=kind or None, process=True)
+    try:  # unprocessed: trimesh's processing drops non-finite triangles without a word
+        loaded = trimesh.load(str(path), file_type=kind or None, process=False)
     except Exception as exc:  # trimesh raises many kinds on malformed files
         raise ModelError(f"{path}: not a readable mesh or point cloud ({type(exc).__name__}: {exc})") from None
     if isinstance(loaded, trimesh.Scene):  # several bodies, or nothing at all
@@ -177,9 +215,65 @@ def load_model(path: str | os.PathLike[str]) -> tuple[trimesh.Trimesh | trimesh.
         if kind in ("stl", "obj", "off") or len(loaded.vertices) == 0:
             raise ModelError(f"{path}: the {'mesh has no faces' if kind != 'ply' else 'file holds no points'}")
         loaded = trimesh.PointCloud(loaded.vertices)
-    if not np.isfinite(loaded.vertices).all():
-        raise ModelError(f"{path}: the model has non-finite coordinates")
-    return loaded, _header_units(head, kind)
+    warnings: list[str] = []
+    if isinstance(loaded, trimesh.Trimesh):
+        loaded = _finite_mesh(loaded, path, warnings)
+    else:
+        loaded = _finite_cloud(loaded, path, warnings)
+    inside_out = isinstance(loaded, trimesh.Trimesh) and _inside_out(loaded)
+    if inside_out:
+        warnings.append(f"{path}: the mesh is wound inside out (its face normals point inward)")
+    for w in warnings:
+        log.warning(w)
+    return LoadedModel(loaded, _header_units(head, kind), tuple(warnings), inside_out)
+
+
+def _finite_mesh(mesh: trimesh.Trimesh, path: Path, warnings: list[str]) -> trimesh.Trimesh:
+    """The mesh without triangles that touch a non-finite vertex (warned), vertices merged; a ModelError when no
+    triangle with an area is left."""
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    finite = np.isfinite(vertices).all(axis=1)[faces].all(axis=1)
+    if not finite.all():
+        if not finite.any():
+            raise ModelError(f"{path}: every triangle has a non-finite vertex coordinate (NaN or Inf)")
+        warnings.append(
+            f"{path}: {int((~finite).sum())} of {len(faces)} triangles have a non-finite vertex coordinate "
+            "(NaN or Inf) and are left out"
+        )
+        faces = faces[finite]
+    with np.errstate(all="ignore"):
+        tri = vertices[faces]
+        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area2 > 0).any():
+        raise ModelError(f"{path}: all {len(faces)} triangles have zero area: the mesh has no surface")
+    return trimesh.Trimesh(vertices, faces, process=True)
+
+
+def _finite_cloud(cloud: trimesh.PointCloud, path: Path, warnings: list[str]) -> trimesh.PointCloud:
+    """The point cloud without its non-finite points (warned); a ModelError when none is left."""
+    points = np.asarray(cloud.vertices, dtype=np.float64)
+    finite = np.isfinite(points).all(axis=1)
+    if finite.all():
+        return cloud
+    if not finite.any():
+        raise ModelError(f"{path}: every point has a non-finite coordinate (NaN or Inf)")
+    warnings.append(
+        f"{path}: {int((~finite).sum())} of {len(points)} points have a non-finite coordinate (NaN or Inf) and are "
+        "left out"
+    )
+    return trimesh.PointCloud(points[finite])
+
+
+def _inside_out(mesh: trimesh.Trimesh) -> bool:
+    """Whether most of the surface faces its centroid: the area-weighted mean of n . (p - c) over the faces is
+    negative and at least half their absolute mean (for a closed mesh, a negative volume; open scans of a part seen
+    from outside are positive; a flat sheet, near 0, is not called inside out)."""
+    with np.errstate(all="ignore"):
+        area, centre = np.asarray(mesh.area_faces), np.asarray(mesh.triangles_center, dtype=np.float64)
+        middle = (area @ centre) / area.sum()
+        weighted = area * np.einsum("ij,ij->i", np.asarray(mesh.face_normals), centre - middle)
+        total, magnitude = float(np.sum(weighted)), float(np.sum(np.abs(weighted)))
+    return bool(np.isfinite(total) and magnitude > 0 and total < -0.5 * magnitude)
 
 
 def _header_units(head: bytes, kind: str) -> str | None:

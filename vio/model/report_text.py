@@ -41,6 +41,8 @@ def report_markdown(report: dict) -> str:
         "the CAD surface (on its normal side), negative inside. Registration is rigid, without scale, so a scale "
         "error of the model shows here as a tolerance window that grows with the part's size.",
         "",
+        *(f"**Warning:** {w}" + "  " for w in report.get("warnings", [])),
+        *([""] if report.get("warnings") else []),
         "## Deviation",
         "",
         "| statistic | value |",
