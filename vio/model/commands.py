@@ -149,7 +149,10 @@ def measure_file(
         else:
             notes.append(f"scale uncertainty {100 * scale_sigma_rel:.3f} % (1 sigma, the run's factor graph)")
     base_closed = (model_path.with_name("model.json")).is_file()  # our models close the base on the support
-    dims = measure(pts, nrm, shape, cad, scale_sigma_rel, u_model_mm, base_is_closure=base_closed)
+    try:
+        dims = measure(pts, nrm, shape, cad, scale_sigma_rel, u_model_mm, base_is_closure=base_closed)
+    except ModelError as exc:
+        raise ModelError(f"{model_path}: {exc}") from None
     if not dims:
         raise ModelError(f"{model_path}: no dimension could be measured as a {shape}")
     dims = [replace(d, flags=flags) for d in dims]

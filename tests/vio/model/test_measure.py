@@ -9,10 +9,11 @@ import pytest
 import trimesh
 
 from vio.errors import ModelError
+from vio.model.commands import measure_file
 from vio.model.measure import measure
 from vio.model.measure_report import Dimension, inspection_report, report_dict
 from vio.model.primitives import sample_surface
-from vio.sim.parts import build_part
+from vio.sim.parts import build_part, write_stl
 
 NOISE_MM = 0.05
 
@@ -152,3 +153,52 @@ def test_report_markdown_and_json(cube):
     data = json.loads(json.dumps(report_dict(dims)))
     assert data["k"] == 1.96 and data["dimensions"][0]["U95"] == pytest.approx(dims[0].U95)
     assert set(data["dimensions"][0]) >= {"name", "kind", "nominal", "measured", "deviation", "components"}
+
+
+def _model_from_a_run(tmp_path, status: str | None, reasons: list[str]):
+    """part.stl (the cube, mm) with the model.json `vio model` writes beside it and the run.json it names."""
+    part = build_part("cube")
+    folder = tmp_path / "model"
+    write_stl(folder / "part.stl", part.vertices_mm, part.faces, "vio part model, mm")
+    (folder / "run").mkdir()
+    (folder / "run" / "run.json").write_text(json.dumps({"status": status, "reasons": reasons}))
+    meta = {"run": str(folder / "run"), "run_status": status, "scale_sigma_rel": 0.002, "warnings": []}
+    (folder / "model.json").write_text(json.dumps(meta))
+    return folder / "part.stl"
+
+
+def test_dimensions_from_a_degraded_run_are_flagged_everywhere(tmp_path, caplog):
+    reason = "tracking lost 2.0-4.0 s: 3 tracked features (< 20)"
+    model = _model_from_a_run(tmp_path, "degraded", [reason])
+    with caplog.at_level("WARNING", logger="vio.model.commands"):
+        text = measure_file(model, "box", out_dir=tmp_path / "out")
+    assert any("degraded" in r.getMessage() and reason in r.getMessage() for r in caplog.records)
+    md = (tmp_path / "out" / "measure.md").read_text()
+    assert md == text
+    head, table = md.split("| # |", 1)
+    assert "**Warning:**" in head and "degraded" in head and reason in head  # above the table
+    rows = [line for line in table.splitlines()[2:] if line.startswith("| ")]
+    assert len(rows) == 6 and all("DEGRADED RUN" in row for row in rows)  # 3 distances, 3 edge lengths
+    data = json.loads((tmp_path / "out" / "measure.json").read_text())
+    assert data["run_status"] == "degraded" and reason in data["warnings"][0]
+    assert all(d["flags"] == ["degraded run"] for d in data["dimensions"]) and len(data["dimensions"]) == 6
+    assert data["dimensions"][0]["components"]["u_scale"] > 0  # the scale sigma still comes from model.json
+
+
+def test_dimensions_from_an_ok_run_carry_no_flag(tmp_path):
+    model = _model_from_a_run(tmp_path, "ok", [])
+    measure_file(model, "box", out_dir=tmp_path / "out")
+    data = json.loads((tmp_path / "out" / "measure.json").read_text())
+    assert data["run_status"] == "ok" and data["warnings"] == []
+    assert all(d["flags"] == [] for d in data["dimensions"])
+    assert "Warning" not in (tmp_path / "out" / "measure.md").read_text()
+
+
+def test_a_model_from_a_failed_run_is_refused_and_nothing_written(tmp_path):
+    model = _model_from_a_run(tmp_path, "failed", ["no estimate: initialisation never succeeded"])
+    with pytest.raises(ModelError, match=r"part\.stl: built from a run that failed \(no estimate") as err:
+        measure_file(model, "box", out_dir=tmp_path / "out")
+    assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
+    (model.with_name("model.json")).write_text("{not json")
+    with pytest.raises(ModelError, match=r"model\.json: not a readable JSON file"):
+        measure_file(model, "box", out_dir=tmp_path / "out")
