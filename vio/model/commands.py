@@ -14,15 +14,18 @@ import numpy as np
 from vio.atomic import ensure_dir, write_json, write_text
 from vio.errors import ModelError
 from vio.model import primitives as prim
+from vio.model.closest import build_index
+from vio.model.deviation import OVERLAP_MM, signed_deviations
 from vio.model.measure import measure
 from vio.model.measure_report import inspection_report, report_dict
 from vio.model.register import register
-from vio.model.report import load_cad, load_model, resolve_units
+from vio.model.report import check_overlap, load_cad, load_model, resolve_units
 from vio.sim.parts import UNITS_TO_MM
 
 log = logging.getLogger(__name__)
 
 SAMPLES = 200_000  # points sampled on a model mesh for the fits
+OVERLAP_POINTS = 20_000  # of them, checked for overlap with the CAD after registration
 
 
 @dataclass(frozen=True)
@@ -132,12 +135,16 @@ def measure_file(
         pts, nrm = np.asarray(model.vertices, float) * scale_mm, None
     notes = [f"model {model_path.name}: {len(pts)} points ({units})"]
     if cad is not None:
+        index = build_index(cad.vertices, cad.faces)
         try:
-            reg = register(pts, cad, rng=rng)
+            reg = register(pts, cad, index=index, rng=rng)
         except ModelError as exc:
             raise ModelError(f"{model_path}: {exc}") from None
         R, t = reg.cad_T_model[:3, :3], reg.cad_T_model[:3, 3]
         pts = pts @ R.T + t
+        subset = pts[rng.choice(len(pts), min(len(pts), OVERLAP_POINTS), replace=False)]
+        within = float(np.mean(np.abs(signed_deviations(subset, index)) <= OVERLAP_MM))
+        check_overlap(model_path, cad_path, reg.rms_mm, within)  # a wrong part is not measured against this CAD
         nrm = None if nrm is None else nrm @ R.T
         notes.append(f"registered to {Path(cad_path).name}: RMS {reg.rms_mm:.3f} mm (rigid, no scale)")
     if scale_sigma_rel is None:

@@ -30,6 +30,8 @@ from vio.model.report_text import report_markdown
 log = logging.getLogger(__name__)
 
 UNITS_TO_MM = {"mm": 1.0, "m": 1000.0}
+MAX_RMS_MM = 2.0  # a registration worse than this is not the model of this CAD
+MIN_OVERLAP = 0.2  # nor is a model with less than this share of its points within deviation.OVERLAP_MM of the CAD
 _UNITS_RE = (
     re.compile(r"\bunits?\s*[:=]?\s*(millimet(?:re|er)s?|met(?:re|er)s?|mm|m)\b", re.IGNORECASE),
     re.compile(r",\s*(mm|m)\s*$"),  # vio's STL headers: "vio part cube: part frame, mm"
@@ -46,8 +48,8 @@ def compare(
     sampling: str = "surface",
     samples: int = 200_000,
     seed: int = 0,
-    max_rms_mm: float = 2.0,
-    min_overlap: float = 0.2,
+    max_rms_mm: float = MAX_RMS_MM,
+    min_overlap: float = MIN_OVERLAP,
 ) -> dict:
     """Compare a model (STL, PLY, OBJ, ... mesh, or a PLY point cloud) with its CAD (STL); returns report.json's dict.
 
@@ -85,11 +87,7 @@ def compare(
     t0 = time.perf_counter()
     signed = dev.signed_deviations(points, cad_index)
     stats = dev.deviation_stats(signed)
-    if reg.rms_mm > max_rms_mm or stats.within_overlap < min_overlap:
-        raise ModelError(
-            f"{model_path}: the model does not overlap the CAD {cad_path} after registration (RMS {reg.rms_mm:.2f} mm, "
-            f"{100 * stats.within_overlap:.0f} % of it within {dev.OVERLAP_MM:g} mm); wrong part, or wrong --units?"
-        )
+    check_overlap(model_path, cad_path, reg.rms_mm, stats.within_overlap, max_rms_mm, min_overlap)
     vertex_signed = dev.signed_deviations(model.vertices, cad_index) if is_mesh else signed
     complete = dev.completeness(cad, model, rng=rng)
     timings["deviation_s"] = time.perf_counter() - t0
@@ -145,6 +143,23 @@ def compare(
     write_json(out / "report.json", report)
     log.info("compared %s with %s: window %+.3f/%+.3f mm", name, cad_path, stats.max_positive_mm, stats.max_negative_mm)
     return report
+
+
+def check_overlap(
+    model_path: object,
+    cad_path: object,
+    rms_mm: float,
+    within_overlap: float,
+    max_rms_mm: float = MAX_RMS_MM,
+    min_overlap: float = MIN_OVERLAP,
+) -> None:
+    """A ModelError (one line) when a registered model does not overlap its CAD: the registration's RMS (mm) above
+    `max_rms_mm`, or under `min_overlap` of its points within `deviation.OVERLAP_MM` of the CAD."""
+    if rms_mm > max_rms_mm or within_overlap < min_overlap:
+        raise ModelError(
+            f"{model_path}: the model does not overlap the CAD {cad_path} after registration (RMS {rms_mm:.2f} mm, "
+            f"{100 * within_overlap:.0f} % of it within {dev.OVERLAP_MM:g} mm); wrong part, or wrong --units?"
+        )
 
 
 def load_cad(path: str | os.PathLike[str], units: str) -> trimesh.Trimesh:
