@@ -135,6 +135,18 @@ def scratch_captures(tag: str) -> Path:
     return Path(tempfile.gettempdir()) / f"vio-bench-{tag}" / "captures"
 
 
+def _worker_name() -> str:
+    """The Dask worker's address when a Dask worker runs this job, else the host name."""
+    if "distributed" in sys.modules:
+        from distributed import get_worker
+
+        try:
+            return str(get_worker().address)
+        except ValueError:  # not inside a Dask task
+            pass
+    return socket.gethostname()
+
+
 def execute(spec: dict[str, Any], captures: str | None, runs: str | None, tag: str = "") -> dict[str, Any]:
     """Run one job (`job_spec`). Captures are kept under `captures` (None: `scratch_captures(tag)` on the machine
     that runs the job); the run goes to `runs/<case>/<method>` (None: a temporary folder, deleted after its files
@@ -151,7 +163,7 @@ def execute(spec: dict[str, Any], captures: str | None, runs: str | None, tag: s
         folder = tmp
     else:
         folder = Path(runs) / case.key / method.name
-    result: dict[str, Any] = {"host": socket.gethostname(), "files": {}}
+    result: dict[str, Any] = {"host": _worker_name(), "files": {}}
     try:
         sim = ensure_capture(case, cap_root)
         result["capture_cached"] = bool(sim.get("cached"))

@@ -1,0 +1,110 @@
+"""Benchmark suites as YAML data files: the packaged ones keep the cases and methods they had in Python, and a
+bad suite file is one clear line."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from vio.bench.suites import (
+    EUROC_GT_FILE,
+    FIXED_LAG,
+    IMU_ONLY,
+    MODEL,
+    MODEL_POSITIONS,
+    MODEL_SEEDS,
+    PARTS,
+    SUITES,
+    VIO,
+    VIO_AND_BATCH,
+    VISION_ONLY,
+    Case,
+    get_suite,
+    load_suite,
+)
+from vio.errors import ConfigError
+
+
+def _grid(scenarios, imus, seeds, duration_s, images=True):
+    return tuple(Case(s, seed, imu, duration_s, images) for s, imu, seed in itertools.product(scenarios, imus, seeds))
+
+
+def _python_suites() -> dict:
+    """The suites as `vio/bench/suites.py` defined them in code before issue 19 (cases, methods, plots)."""
+    drift = (IMU_ONLY, VIO_AND_BATCH, VISION_ONLY, FIXED_LAG)
+    full = _grid(["orbit", "figure8", "room"], ["phone", "tactical"], [0, 1, 2, 3, 4], 60.0)
+    if EUROC_GT_FILE.exists():
+        full += _grid([str(EUROC_GT_FILE)], ["phone"], [0, 1, 2], 60.0)
+    quick = _grid(["orbit", "figure8", "room"], ["phone"], [0], 15.0)
+    quick += (Case("orbit", 1, "phone", 15.0), Case("orbit", 0, "tactical", 15.0))
+    return {
+        "tiny": ((Case("orbit", 0, "phone", 4.0),), (IMU_ONLY, VIO), True),
+        "quick": (quick, drift, True),
+        "full": (full, drift, True),
+        "drift60": (
+            _grid(["orbit", "figure8", "room"], ["phone", "tactical", "ideal"], [0, 1, 2], 60.0, False),
+            (IMU_ONLY,),
+            True,
+        ),  # fmt: skip
+        "model": (
+            tuple(Case("orbit", s, "phone", 60.0, stills_hz=2.0) for s in MODEL_SEEDS),
+            (MODEL, MODEL_POSITIONS),
+            False,
+        ),  # fmt: skip
+        "parts": (tuple(Case("orbit", 101, "phone", 60.0, part=p, stills_hz=2.0) for p in PARTS), (MODEL,), False),
+    }
+
+
+@pytest.mark.parametrize("name", SUITES)
+def test_packaged_suites_keep_their_cases_and_methods(name):
+    cases, methods, plots = _python_suites()[name]
+    suite = get_suite(name)
+    assert suite.name == name and suite.cases == cases and suite.methods == methods and suite.plots == plots
+
+
+def test_model_method_fields_survive_yaml():
+    model = get_suite("model")
+    assert [m.positions_sigma_m for m in model.methods] == [0.0, 1e-4]
+    assert all(isinstance(c.stills_hz, float) and c.stills_hz == 2.0 for c in model.cases)
+    assert [c.part for c in get_suite("parts").cases] == list(PARTS)
+
+
+def test_a_suite_file_by_path(tmp_path):
+    path = tmp_path / "mine.yaml"
+    path.write_text(
+        "name: mine\nmethods:\n  - {name: lag, kind: vio, presets: [fixed_lag], overrides: ['run.refine=false']}\n"
+        "cases:\n  - grid: {imu: [phone, tactical], seed: [7, 8]}\n    scenario: room\n    duration_s: 5\n"
+    )
+    suite = get_suite(str(path))
+    assert suite.name == "mine" and suite.methods[0].presets == ("fixed_lag",)
+    assert [(c.imu, c.seed) for c in suite.cases] == [("phone", 7), ("phone", 8), ("tactical", 7), ("tactical", 8)]
+    assert suite.cases[0].duration_s == 5.0 and isinstance(suite.cases[0].duration_s, float)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("name: x\nmethods: [{name: a, kind: vio}]\ncases: [{scenario: orbit, seed: 0, imu: phone}]\n", "needs"),
+        ("name: x\nmethods: [{name: a, kind: vio, colour: red}]\ncases: []\n", "needs a non-empty"),
+        ("name: x\nmethods: [{name: a, kind: vio, colour: red}]\ncases: [{seed: 1}]\n", "unknown method field"),
+        (
+            "name: x\nmethods: [{name: a, kind: vio}]\ncases: [{scenario: orbit, seed: one, imu: p, duration_s: 1}]\n",
+            "seed must be int",
+        ),  # fmt: skip
+        ("name: x\nmethods: [{name: a, kind: vio}]\ncases: [{grid: {sead: [1]}}]\n", "unknown case field"),
+        ("name: x\nmethod: []\n", "unknown suite key"),
+        ("name: [x\n", "not valid YAML"),
+    ],
+)
+def test_a_bad_suite_file_is_one_line(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message) as info:
+        load_suite(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_unknown_suite_names_the_known_ones():
+    with pytest.raises(ConfigError, match="unknown benchmark suite 'nope'; known: drift60, full, model, parts"):
+        get_suite("nope")
