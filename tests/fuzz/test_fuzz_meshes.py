@@ -47,6 +47,11 @@ def _mutate(name: str, good: bytes) -> bytes:
         return stl_bytes(vertices, faces[:, ::-1], header="inside out, mm")
     if name == "flat_sheet":  # the box squashed into its mid-plane
         return stl_bytes(vertices * [1.0, 1.0, 0.0], faces, header="flat, mm")
+    if name == "ply_face_index_out_of_range":
+        head = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        return (
+            head + "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n"
+        ).encode()
     if name.startswith("ply_") and name != "ply_billion_vertices":
         rng = np.random.default_rng(3)
         points = trimesh.Trimesh(vertices, faces).sample(2_000, seed=3) + rng.normal(0.0, 0.05, (2_000, 3))
@@ -103,9 +108,15 @@ EXPECT = {
     "ply_one_point": "error",
     "ply_points_on_a_line": "error",
     "ply_nan_points": "report",
+    "ply_face_index_out_of_range": "error",
 }
 WARNS = {"nan_vertices": "non-finite", "ply_nan_points": "non-finite", "inverted_normals": "inside out"}
-ERRORS = {"all_zero_area": "zero area", "ply_one_point": "1 finite points", "ply_points_on_a_line": "on a line"}
+ERRORS = {
+    "all_zero_area": "zero area",
+    "ply_one_point": "1 finite points",
+    "ply_points_on_a_line": "on a line",
+    "ply_face_index_out_of_range": "face 0 refers to vertex 7 of 3",
+}
 
 
 def _no_constant(name: str) -> None:

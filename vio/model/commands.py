@@ -99,6 +99,9 @@ def measure_file(
     The run's health comes from that model.json too: a `failed` run is refused (ModelError, nothing written); from a
     `degraded` one every dimension is flagged, with a warning at the top of the report and in the log."""
     model_path = Path(model_path)
+    for what, value in (("relative scale sigma", scale_sigma_rel), ("model uncertainty u_model_mm", u_model_mm)):
+        if value is not None and not (np.isfinite(value) and value >= 0.0):
+            raise ModelError(f"the {what} must be a finite number >= 0, not {value}")
     trust = run_trust_beside(model_path)
     why = "; ".join(trust.reasons) or "reasons not found"
     if trust.run_status == "failed":

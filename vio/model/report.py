@@ -247,6 +247,10 @@ def _finite_mesh(mesh: trimesh.Trimesh, path: Path, warnings: list[str]) -> trim
     """The mesh without triangles that touch a non-finite vertex (warned), vertices merged; a ModelError when no
     triangle with an area is left."""
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    outside = (faces < 0) | (faces >= len(vertices))
+    if outside.any():
+        row = int(np.flatnonzero(outside.any(axis=1))[0])
+        raise ModelError(f"{path}: face {row} refers to vertex {faces[row][outside[row]][0]} of {len(vertices)}")
     finite = np.isfinite(vertices).all(axis=1)[faces].all(axis=1)
     if not finite.all():
         if not finite.any():

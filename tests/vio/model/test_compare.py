@@ -184,3 +184,19 @@ def test_bad_inputs_are_one_clear_line(cads, tmp_path):
     with pytest.raises(ModelError, match="does not overlap the CAD"):
         compare(tmp_path / "other.stl", tmp_path / "cad.stl", out, samples=5_000)
     assert not out.exists()  # nothing half-written
+
+
+def test_a_model_with_nan_vertices_is_compared_without_them_and_says_so(cads, tmp_path):
+    cube = cads["cube"]
+    write_stl(tmp_path / "cad.stl", cube.vertices, cube.faces, "cube, mm")
+    mesh = cube.subdivide().subdivide()
+    vertices = np.array(mesh.vertices)
+    vertices[::9] = np.nan
+    write_stl(tmp_path / "model.stl", vertices, mesh.faces, "model, mm")
+    report = compare(tmp_path / "model.stl", tmp_path / "cad.stl", tmp_path / "out", samples=5_000)
+    bad = int((~np.isfinite(vertices[mesh.faces]).all(axis=(1, 2))).sum())
+    assert len(report["warnings"]) == 1 and f"{bad} of {len(mesh.faces)} triangles" in report["warnings"][0]
+    assert report["quality"]["faces"] == len(mesh.faces) - bad and report["deviation"]["rms_mm"] < 1e-3
+    assert report["completeness"] < 0.99  # the holes the NaN left show
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert md.index("**Warning:**") < md.index("## Deviation") and "non-finite" in md

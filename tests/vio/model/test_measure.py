@@ -202,3 +202,11 @@ def test_a_model_from_a_failed_run_is_refused_and_nothing_written(tmp_path):
     (model.with_name("model.json")).write_text("{not json")
     with pytest.raises(ModelError, match=r"model\.json: not a readable JSON file"):
         measure_file(model, "box", out_dir=tmp_path / "out")
+
+
+def test_an_uncertainty_that_is_not_a_finite_non_negative_number_is_refused(tmp_path):
+    model = _model_from_a_run(tmp_path, "ok", [])
+    for kwargs in ({"scale_sigma_rel": float("nan")}, {"scale_sigma_rel": -0.01}, {"u_model_mm": float("inf")}):
+        with pytest.raises(ModelError, match="must be a finite number >= 0"):
+            measure_file(model, "box", out_dir=tmp_path / "out", **kwargs)
+    assert not (tmp_path / "out").exists()
