@@ -56,13 +56,17 @@ class PhoneCamera:
         if not 1 <= self.bands <= height:
             raise SimulationError(f"rolling-shutter bands must be between 1 and the image height, got {self.bands}")
 
-    def yaml_dict(self) -> dict:
-        """The true camera timing and sensor model, for the ground truth (`scene/scene.yaml`)."""
+    def yaml_dict(self, height: int) -> dict:
+        """The true camera timing and sensor model, for the ground truth (`scene/scene.yaml`); `height` in px.
+
+        `timeshift_image_centre_s` is the shift that puts a stamp at the middle row's mid-exposure: what an
+        estimator that treats the frame as a global-shutter image taken at one time should find."""
         return {
             "model": "phone (rolling shutter)",
             "readout_s": float(self.readout_s),
             "exposure_s": float(self.exposure_s),
             "timeshift_cam_imu_s": float(self.time_offset_s),
+            "timeshift_image_centre_s": float(self.time_offset_s + self.readout_s * (height - 1) / (2.0 * height)),
             "convention": "t_imu = t_cam + timeshift_cam_imu is the top row's mid-exposure; row v of H is read "
             "readout_s * v / H later",
             "auto_exposure": bool(self.auto_exposure),

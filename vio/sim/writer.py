@@ -55,7 +55,10 @@ def scene_yaml_text(sc: Scenario) -> str:
         "frames": "world z up, gravity (0, 0, -9.81) m/s^2; body = IMU",
     }
     if sc.phone is not None:  # only then: the default capture's scene.yaml stays as it was
-        meta["camera"] = {**sc.phone.yaml_dict(), "frames": "camera_frames.csv (stamp, true time, gain, blur)"}
+        meta["camera"] = {
+            **sc.phone.yaml_dict(sc.camera.height),
+            "frames": "camera_frames.csv (stamp, true time, gain, blur)",
+        }
     if sc.imu_errors is not None:
         meta["imu_errors"] = sc.imu_errors.yaml_dict()
     return "# vio simulated scene (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False)

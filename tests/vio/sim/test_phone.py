@@ -87,9 +87,9 @@ def test_rolling_shutter_skews_vertical_structure_by_the_readout_times_the_yaw_r
 
 @pytest.fixture(scope="module")
 def phone_capture(tmp_path_factory):
-    """A 1 s phone capture through the command line (rolling shutter, blur, clock offset, 100 Hz jittery IMU)."""
+    """A 0.7 s phone capture through the command line (rolling shutter, blur, clock offset, 100 Hz jittery IMU)."""
     out = tmp_path_factory.mktemp("phone") / "c"
-    cmd = [*VIO, "simulate", "orbit", "--duration", "1.0", "--seed", "4", "--camera", "phone", "--out", str(out)]
+    cmd = [*VIO, "simulate", "orbit", "--duration", "0.7", "--seed", "4", "--camera", "phone", "--out", str(out)]
     subprocess.run(cmd, check=True, capture_output=True, timeout=120)
     return out
 
@@ -98,6 +98,7 @@ def test_phone_capture_states_its_clock_offset_and_frames_are_rendered_at_the_tr
     meta = yaml.safe_load((phone_capture / "scene" / "scene.yaml").read_text())
     assert meta["camera"]["timeshift_cam_imu_s"] == pytest.approx(0.015)
     assert meta["camera"]["readout_s"] == pytest.approx(0.020)
+    assert meta["camera"]["timeshift_image_centre_s"] == pytest.approx(0.015 + 0.010, abs=1e-4)
     assert meta["imu_rate_hz"] == 100.0
     path = phone_capture / "scene" / "camera_frames.csv"
     stamps, t_true = np.loadtxt(path, delimiter=",", comments="#", usecols=(0, 1), dtype=np.int64).T
@@ -106,7 +107,7 @@ def test_phone_capture_states_its_clock_offset_and_frames_are_rendered_at_the_tr
     assert np.array_equal(cap.frame_t_ns, stamps)
     assert cap.frame_t_ns[0] >= cap.imu.t_ns[0]  # every stamp inside the IMU's span: no frame is dropped
     # the image matches a render at the true time far better than one at the (offset) stamp
-    sc = load_scenario("orbit", seed=4, duration_s=1.0, phone=PRESETS["phone"], imu_rate_hz=100.0)
+    sc = load_scenario("orbit", seed=4, duration_s=0.7, phone=PRESETS["phone"], imu_rate_hz=100.0)
     renderer = Renderer(sc.scene, sc.camera)
     rows = band_rows(sc.camera.height, sc.phone.bands)
     i = len(stamps) // 2
