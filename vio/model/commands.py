@@ -3,10 +3,9 @@ is `vio.model.build`, `vio compare` is `vio.model.report.compare`."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,65 +19,13 @@ from vio.model.measure import measure
 from vio.model.measure_report import inspection_report, report_dict
 from vio.model.register import register
 from vio.model.report import check_overlap, load_cad, load_model, resolve_units
+from vio.model.run_trust import run_trust_beside
 from vio.sim.parts import UNITS_TO_MM
 
 log = logging.getLogger(__name__)
 
 SAMPLES = 200_000  # points sampled on a model mesh for the fits
 OVERLAP_POINTS = 20_000  # of them, checked for overlap with the CAD after registration
-
-
-@dataclass(frozen=True)
-class RunTrust:
-    """What the model.json beside a model (written by `vio model`) says about the run it was built from."""
-
-    scale_sigma_rel: float | None  # the run's relative scale sigma (1 sigma, factor graph), None when unknown
-    run_status: str | None  # ok | degraded | failed (run.json's `status`), None without a run (or a model.json)
-    reasons: tuple[str, ...]  # run.json's `reasons` when the run is not ok and its run.json is found
-    run_dir: str | None  # the run folder model.json names
-    model_warnings: tuple[str, ...]  # model.json's own `warnings` (e.g. a mesh that is not watertight)
-
-
-def run_trust_beside(model_path: Path) -> RunTrust:
-    """The run's scale uncertainty and health from the model.json next to a model written by `vio model` (and the
-    run.json it names, for the reasons); all empty when there is no model.json. A model.json that is not valid JSON
-    is a ModelError: the scale's trust would be unknown."""
-    meta_path = model_path.with_name("model.json")
-    if not meta_path.is_file():
-        return RunTrust(None, None, (), None, ())
-    meta = _json_object(meta_path)
-    sigma = meta.get("scale_sigma_rel")
-    status, run_dir = meta.get("run_status"), meta.get("run")
-    reasons: tuple[str, ...] = ()
-    if status not in (None, "ok"):
-        run_json = _run_json(model_path, run_dir)
-        if run_json is None:
-            log.warning("%s: the run's run.json was not found; its reasons are unknown", meta_path)
-        else:
-            reasons = tuple(str(r) for r in _json_object(run_json).get("reasons") or ())
-    warnings = tuple(str(w) for w in meta.get("warnings") or ())
-    if not isinstance(sigma, (int, float)) or not np.isfinite(sigma) or sigma < 0:
-        sigma = None
-    return RunTrust(sigma, None if status is None else str(status), reasons, run_dir, warnings)
-
-
-def _json_object(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelError(f"{path}: not a readable JSON file ({exc})") from None
-    if not isinstance(data, dict):
-        raise ModelError(f"{path}: expected a JSON object")
-    return data
-
-
-def _run_json(model_path: Path, run_dir: object) -> Path | None:
-    """run.json of the run model.json names (as given, or relative to the model's folder), or of OUT/run (where
-    `vio model` runs `vio run` itself)."""
-    candidates = [model_path.parent / "run"]
-    if isinstance(run_dir, str) and run_dir:
-        candidates[:0] = [Path(run_dir), model_path.parent / run_dir]
-    return next((c / "run.json" for c in candidates if (c / "run.json").is_file()), None)
 
 
 def measure_file(
@@ -103,20 +50,10 @@ def measure_file(
         if value is not None and not (np.isfinite(value) and value >= 0.0):
             raise ModelError(f"the {what} must be a finite number >= 0, not {value}")
     trust = run_trust_beside(model_path)
-    why = "; ".join(trust.reasons) or "reasons not found"
     if trust.run_status == "failed":
-        raise ModelError(
-            f"{model_path}: built from a run that failed ({why}); its scale cannot be trusted: not measured"
-        )
-    warnings: list[str] = []
-    flags: tuple[str, ...] = ()
-    if trust.run_status == "degraded":
-        warnings.append(
-            f"the run this model was built from ({trust.run_dir}) was degraded ({why}): its scale, and so every "
-            "dimension here, may be off by more than the stated U95"
-        )
-        flags = ("degraded run",)
-    warnings += [f"model.json: {w}" for w in trust.model_warnings]
+        raise ModelError(f"{model_path}: built from a run that failed ({trust.why()}); its scale cannot be trusted")
+    warnings = list(trust.warnings("every dimension here"))
+    flags = ("degraded run",) if trust.run_status == "degraded" else ()
     for w in warnings:
         log.warning("%s: %s", model_path, w)
     loaded = load_model(model_path)  # logs its own warnings

@@ -26,6 +26,7 @@ from vio.model.figures import deviation_png, histogram_png
 from vio.model.quality import mesh_quality
 from vio.model.register import register
 from vio.model.report_text import report_markdown
+from vio.model.run_trust import run_trust_beside
 
 log = logging.getLogger(__name__)
 
@@ -59,14 +60,21 @@ def compare(
     its faces (sampling="surface") or at its vertices ("vertices"). Raises ModelError (one line) for a CAD that is
     not a valid STL, a model without points or with an STL without faces, and a model that does not overlap the
     CAD after registration (trimmed RMS above `max_rms_mm`, or under `min_overlap` of it within 2 mm of the CAD).
+    A model from a degraded or failed run (the model.json beside it says so), and anything left out of the model
+    on loading, is compared with a warning (the log, report.json `warnings`, the top of report.md).
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if (units is not None and units not in UNITS_TO_MM) or cad_units not in UNITS_TO_MM:
         raise ModelError(f"unknown units {units!r}; use one of {', '.join(UNITS_TO_MM)}")
     cad = load_cad(cad_path, cad_units)
-    loaded = load_model(model_path)
-    model, warnings = loaded.geometry, list(loaded.warnings)  # signed deviations do not depend on its winding
+    trust = run_trust_beside(Path(model_path))
+    run_warnings = trust.warnings("the deviations here")
+    for w in run_warnings:
+        log.warning("%s: %s", model_path, w)
+    loaded = load_model(model_path)  # logs its own warnings
+    model = loaded.geometry  # signed deviations do not depend on its winding
+    warnings = [*run_warnings, *loaded.warnings]
     units, units_source = resolve_units(model, cad, units, loaded.file_units, model_path)
     model.apply_scale(UNITS_TO_MM[units])
     rng = np.random.default_rng(seed)
@@ -134,6 +142,7 @@ def compare(
         "quality": quality,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "files": sorted([*files, "report.md", "report.json"]),
+        "run_status": trust.run_status,
         "warnings": warnings,
     }
     out = ensure_dir(out_dir)

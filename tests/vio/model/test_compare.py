@@ -200,3 +200,20 @@ def test_a_model_with_nan_vertices_is_compared_without_them_and_says_so(cads, tm
     assert report["completeness"] < 0.99  # the holes the NaN left show
     md = (tmp_path / "out" / "report.md").read_text()
     assert md.index("**Warning:**") < md.index("## Deviation") and "non-finite" in md
+
+
+def test_a_model_from_a_degraded_run_is_compared_with_a_warning(cads, tmp_path):
+    cube = cads["cube"]
+    write_stl(tmp_path / "cad.stl", cube.vertices, cube.faces, "cube, mm")
+    write_stl(tmp_path / "part.stl", cube.vertices, cube.faces, "vio part model, mm")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "run.json").write_text(json.dumps({"status": "degraded", "reasons": ["IMU alone 3-5 s"]}))
+    meta = {"run": str(tmp_path / "run"), "run_status": "degraded", "warnings": ["the mesh is not watertight"]}
+    (tmp_path / "model.json").write_text(json.dumps(meta))
+    report = compare(tmp_path / "part.stl", tmp_path / "cad.stl", tmp_path / "out", samples=5_000)
+    assert report["run_status"] == "degraded" and len(report["warnings"]) == 2
+    assert "was degraded (IMU alone 3-5 s)" in report["warnings"][0] and "not watertight" in report["warnings"][1]
+    assert "was degraded" in (tmp_path / "out" / "report.md").read_text()
+    (tmp_path / "model.json").unlink()  # any other model: no run, no warning
+    report = compare(tmp_path / "part.stl", tmp_path / "cad.stl", tmp_path / "out", samples=5_000)
+    assert report["run_status"] is None and report["warnings"] == []
