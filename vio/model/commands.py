@@ -43,15 +43,16 @@ def measure_file(
     model.json beside the model (from the run's factor graph), else 0 with a warning. Returns the inspection
     report (markdown); with `out_dir` also writes measure.md and then measure.json there.
 
-    The run's health comes from that model.json too: a `failed` run is refused (ModelError, nothing written); from a
-    `degraded` one every dimension is flagged, with a warning at the top of the report and in the log."""
+    The run's health comes from that model.json too: a `failed` run (or one that never finished) is refused
+    (ModelError, nothing written); from a `degraded` one every dimension is flagged, with a warning at the top of
+    the report and in the log."""
     model_path = Path(model_path)
     for what, value in (("relative scale sigma", scale_sigma_rel), ("model uncertainty u_model_mm", u_model_mm)):
         if value is not None and not (np.isfinite(value) and value >= 0.0):
             raise ModelError(f"the {what} must be a finite number >= 0, not {value}")
     trust = run_trust_beside(model_path)
-    if trust.run_status == "failed":
-        raise ModelError(f"{model_path}: built from a run that failed ({trust.why()}); its scale cannot be trusted")
+    if trust.untrusted:
+        raise ModelError(f"{model_path}: the run it was built from {trust.state()} ({trust.why()}); not measured")
     warnings = list(trust.warnings("every dimension here"))
     flags = ("degraded run",) if trust.run_status == "degraded" else ()
     for w in warnings:

@@ -1,6 +1,7 @@
 """What the model.json beside a model (written by `vio model`) says about the run it was built from: the scale's
 uncertainty from the run's factor graph, and the run's health (run.json `status` ok | degraded | failed, `reasons`).
-`vio measure` refuses a model from a failed run and flags every dimension from a degraded one; `vio compare` warns.
+`vio measure` refuses a model from a failed run (or one that never finished: `running`, or any status it does not
+know) and flags every dimension from a degraded one; `vio compare` warns.
 """
 
 from __future__ import annotations
@@ -27,6 +28,17 @@ class RunTrust:
     run_dir: str | None  # the run folder model.json names
     model_warnings: tuple[str, ...]  # model.json's own `warnings` (e.g. a mesh that is not watertight)
 
+    @property
+    def untrusted(self) -> bool:
+        """The run failed, never finished (run.json still says `running`) or has a status this code does not know."""
+        return self.run_status not in (None, "ok", "degraded")
+
+    def state(self) -> str:
+        """E.g. "failed", "was degraded", "did not finish (status 'running')"."""
+        if self.run_status in ("degraded", "failed"):
+            return "was degraded" if self.run_status == "degraded" else "failed"
+        return f"did not finish (status {self.run_status!r})"
+
     def why(self) -> str:
         """The run's reasons on one line."""
         return "; ".join(self.reasons) or "reasons not found"
@@ -35,11 +47,10 @@ class RunTrust:
         """One line per reason not to trust `what` (e.g. "every dimension here") as stated: a degraded or failed
         run first, then the model's own warnings (model.json)."""
         out = [f"model.json: {w}" for w in self.model_warnings]
-        if self.run_status in ("degraded", "failed"):
-            state = "was degraded" if self.run_status == "degraded" else "failed"
+        if self.run_status not in (None, "ok"):
             out.insert(
                 0,
-                f"the run this model was built from ({self.run_dir}) {state} ({self.why()}): its scale, and so "
+                f"the run this model was built from ({self.run_dir}) {self.state()} ({self.why()}): its scale, and so "
                 f"{what}, may be off by more than stated",
             )
         return tuple(out)

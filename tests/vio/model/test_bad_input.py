@@ -88,5 +88,5 @@ def test_a_model_from_a_failed_run(files, tmp_path):
     (folder / "run" / "run.json").write_text(json.dumps({"status": "failed", "reasons": ["no estimate"]}))
     (folder / "model.json").write_text(json.dumps({"run": str(folder / "run"), "run_status": "failed"}))
     line = _one_line_error("measure", str(folder / "part.stl"), "--shape", "box", "--out", str(tmp_path / "o"))
-    assert "part.stl: built from a run that failed (no estimate)" in line
+    assert "part.stl: the run it was built from failed (no estimate)" in line
     assert not (tmp_path / "o").exists()

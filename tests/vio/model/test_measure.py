@@ -196,9 +196,12 @@ def test_dimensions_from_an_ok_run_carry_no_flag(tmp_path):
 
 def test_a_model_from_a_failed_run_is_refused_and_nothing_written(tmp_path):
     model = _model_from_a_run(tmp_path, "failed", ["no estimate: initialisation never succeeded"])
-    with pytest.raises(ModelError, match=r"part\.stl: built from a run that failed \(no estimate") as err:
+    with pytest.raises(ModelError, match=r"part\.stl: the run it was built from failed \(no estimate") as err:
         measure_file(model, "box", out_dir=tmp_path / "out")
     assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
+    model = _model_from_a_run(tmp_path / "killed", "running", [])  # `vio run` killed before it wrote its status
+    with pytest.raises(ModelError, match=r"did not finish \(status 'running'\)"):
+        measure_file(model, "box", out_dir=tmp_path / "out")
     (model.with_name("model.json")).write_text("{not json")
     with pytest.raises(ModelError, match=r"model\.json: not a readable JSON file"):
         measure_file(model, "box", out_dir=tmp_path / "out")
