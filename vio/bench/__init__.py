@@ -8,6 +8,7 @@ Layout of `out/`:
                               (case, method) (a failed run is a row with `error`), the medians with bootstrap
                               intervals and the paired comparisons (`vio.bench.stats`), one record per job
   results.md                  medians per scenario / IMU grade / method, intervals, comparisons, RPE, failures
+  ground_truth/<case>.csv     the captures' ground truth, when the captures are elsewhere (for the plots)
   plots/                      trajectories from above, error over time, error distributions (PNG)
 
 A job is one method on one capture (`vio.bench.jobs`); it simulates its capture when no other job has. Jobs run
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from vio.atomic import ensure_dir, write_bytes, write_json
-from vio.bench.jobs import error_row, job_spec
+from vio.bench.jobs import GROUND_TRUTH, error_row, job_spec
 from vio.bench.schedulers import open_scheduler
 from vio.bench.suites import Case, Method, Suite, get_suite
 
@@ -72,6 +73,18 @@ def _save(out: Path, case: Case, method: Method, res: dict[str, Any], attempts: 
         "scheduler": scheduler,
     }
     write_json(folder / JOB_RECORD, rec)
+
+
+def _keep_ground_truth(out: Path, case: Case, captures: str | None, res: dict[str, Any]) -> None:
+    """`out/ground_truth/<case>.csv` for the plots, when the capture is not under `out/captures`."""
+    target = out / "ground_truth" / f"{case.key}.csv"
+    if target.exists() or (out / "captures" / case.key).exists():
+        return
+    source = Path(captures) / case.key / GROUND_TRUTH if captures else None
+    if res.get("ground_truth"):
+        write_bytes(target, res["ground_truth"])
+    elif source is not None and source.is_file():
+        write_bytes(target, source.read_bytes())
 
 
 def _minutes(s: float) -> str:
@@ -144,6 +157,7 @@ def run_suite(
                     continue
                 failed += bool(errors)
                 _save(out, case, method, res, attempt, sch.name)
+                _keep_ground_truth(out, case, sch.captures, res)
                 results[j] = res["rows"]
                 records[j] = {"job": job_spec(case, method), "attempts": attempt, "wall_s": res.get("wall_s"),
                               "host": res.get("host"), "resumed": False}  # fmt: skip

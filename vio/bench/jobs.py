@@ -34,6 +34,7 @@ from vio.bench.suites import Case, Method
 log = logging.getLogger(__name__)
 
 TASK_TIMEOUT_S = 1800.0  # a single simulation or method run taking longer than this is recorded as failed
+GROUND_TRUTH = Path("mav0") / "state_groundtruth_estimate0" / "data.csv"  # in a capture
 MAX_RETURNED_FILE_BYTES = 5_000_000  # larger files of a run (dense clouds, meshes) stay on the worker
 
 
@@ -184,6 +185,9 @@ def execute(spec: dict[str, Any], captures: str | None, runs: str | None, tag: s
             result["rows"] = rows
         if tmp is not None:
             result["files"] = _collect_files(folder)
+            gt = Path(sim.get("capture", "")) / GROUND_TRUTH
+            if "error" not in sim and gt.is_file():
+                result["ground_truth"] = gt.read_bytes()
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -65,12 +65,21 @@ def _grid(n: int) -> tuple[plt.Figure, np.ndarray]:
     return fig, axes.flat
 
 
+def ground_truth_path(out: Path, case_key: str) -> Path | None:
+    """The capture's ground truth: the cached capture `out/captures/<case>`, or the copy `out/ground_truth/<case>.csv`
+    kept when the captures were elsewhere (a shared `--captures` folder, a remote worker's cache)."""
+    for p in (out / "captures" / case_key, out / "ground_truth" / f"{case_key}.csv"):
+        if p.exists():
+            return p
+    return None
+
+
 def plot_trajectories(cases: list[Any], out: Path, path: Path) -> None:
     from vio.trajio import read_trajectory
 
     fig, axes = _grid(len(cases))
     for ax, case in zip(axes, cases, strict=False):
-        gt = read_trajectory(out / "captures" / case.key)
+        gt = read_trajectory(ground_truth_path(out, case.key))
         ax.plot(gt.p_world[:, 0], gt.p_world[:, 1], color="black", lw=2.5, label="ground truth", zorder=1)
         lo, hi = gt.p_world[:, :2].min(axis=0), gt.p_world[:, :2].max(axis=0)
         pad = 0.25 * max(float((hi - lo).max()), 0.1)
@@ -138,7 +147,7 @@ def make_plots(suite: Any, rows: list[dict[str, Any]], out: Path) -> list[Path]:
     out = Path(out)
     plots = out / "plots"
     cases = sorted(suite.cases, key=lambda c: (c.seed, c.imu != "phone"))[:MAX_PANELS]
-    cases = [c for c in cases if (out / "captures" / c.key).exists()]
+    cases = [c for c in cases if ground_truth_path(out, c.key) is not None]
     ok_rows = [r for r in rows if "error" not in r]
     paths = []
     if cases:

@@ -99,6 +99,8 @@ def test_a_dask_cluster_gives_the_local_numbers(tmp_path):
         assert (run / f"metrics_{method}.json").exists() and (run / f"aligned_{method}.csv").exists()
         assert json.loads((run / JOB_RECORD).read_text())["scheduler"] == address
     assert "Relative pose error" in (tmp_path / "remote" / "results.md").read_text()
+    assert (tmp_path / "remote" / "ground_truth" / "orbit_phone_s0_4s.csv").exists()  # sent back for the plots
+    assert (tmp_path / "remote" / "plots" / "trajectories.png").stat().st_size > 10_000
     assert "2/2 jobs done" in remote.stderr and "ETA" in remote.stderr
 
 
