@@ -81,8 +81,13 @@ def model_from_views(
     from vio.writers import mesh as mesh_io
 
     out = ensure_dir(out)
+    for name in ("model.json", "part.stl", "part.ply", "dense.ply"):  # model.json last in, first out: a folder
+        (out / name).unlink(missing_ok=True)  # without it holds no model (a killed run mixes nothing old)
     timings: dict[str, float] = {}
     warnings: list[str] = []
+    if (extra or {}).get("run_status") == "degraded":
+        reasons = "; ".join((extra or {}).get("run_reasons") or []) or "see its run.json"
+        warnings.append(f"the run was degraded ({reasons}): its scale and poses may be worse than its sigma says")
     t0 = time.perf_counter()
     if len(views) < 3:
         raise ModelError(f"{len(views)} view(s): multi-view stereo needs at least 3 images")
@@ -202,9 +207,11 @@ def model_capture(
     run_dir = Path(run_dir)
     if not (run_dir / "trajectory.tum").is_file():
         raise ModelError(f"{run_dir}: no trajectory.tum (a `vio run` output folder is needed)")
+    run = json.loads((run_dir / "run.json").read_text(encoding="utf-8")) if (run_dir / "run.json").is_file() else {}
+    if run.get("status") in ("failed", "running", "interrupted"):
+        raise ModelError(f"{run_dir}: the run is {run['status']} (run.json); no model from it")
     cap = open_capture(capture)
     views = views_from_run(cap, read_trajectory(run_dir / "trajectory.tum"), options.source, options.max_views)
-    run = json.loads((run_dir / "run.json").read_text(encoding="utf-8")) if (run_dir / "run.json").is_file() else {}
     scale = (run.get("scale") or {}).get("sigma_rel")
     sparse = _read_ply_points(run_dir / "landmarks.ply")
     extra = {
@@ -213,6 +220,7 @@ def model_capture(
         "source": "stills" if cap.stills is not None and options.source != "video" else "video",
         "scale_sigma_rel": scale,
         "run_status": run.get("status"),
+        "run_reasons": run.get("reasons") or [],
         "views_s": round(time.perf_counter() - t0, 3),
     }
     return model_from_views(views, sparse, out, options, extra, up_world=np.array([0.0, 0.0, 1.0]))

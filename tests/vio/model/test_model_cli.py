@@ -29,13 +29,28 @@ def test_vio_model_writes_a_watertight_part(tmp_path):
     gt = tmp_path / "gt"
     gt.mkdir()
     write_tum(gt / "trajectory.tum", read_trajectory(cap / "mav0" / "state_groundtruth_estimate0" / "data.csv"))
+    (gt / "run.json").write_text(json.dumps({"status": "degraded", "reasons": ["tracking lost 1.00-2.00 s"]}))
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "dense.ply").write_text("a previous model's file")
     r = _run("model", str(cap), "--run", str(gt), "--out", str(tmp_path / "m"), "--no-adjust")  # true poses
     assert r.returncode == 0, r.stderr[-2000:]
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert meta["status"] == "degraded" and "tracking lost 1.00-2.00 s" in meta["warnings"][0]
     assert meta["mesh"]["watertight"] and meta["mesh"]["non_manifold_edges"] == 0 and meta["num_views"] == 8
     v, f = read_stl_mesh(tmp_path / "m" / "part.stl")  # millimetres, the part on its base
     assert 60.0 < np.ptp(v[:, 2]) < 90.0 and len(f) > 1000
     assert (tmp_path / "m" / "dense.ply").stat().st_size > 0 and (tmp_path / "m" / "part.ply").stat().st_size > 0
+
+
+def test_no_model_from_a_failed_or_unfinished_run(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trajectory.tum").write_text("0 0 0 0 0 0 0 1\n")
+    for status in ("failed", "running"):
+        (run / "run.json").write_text(json.dumps({"status": status}))
+        r = _run("model", str(tmp_path), "--run", str(run), "--out", str(tmp_path / "m"))
+        assert r.returncode == 2 and f"the run is {status}" in r.stderr and "Traceback" not in r.stderr
+        assert not (tmp_path / "m" / "model.json").exists()
 
 
 def test_compare_and_measure_a_model_with_a_known_scale_error(tmp_path):
