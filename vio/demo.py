@@ -78,6 +78,6 @@ def _part_section(capture: Path, run_dir: Path, out: Path) -> list[str]:
         "",
         dims,
         "",
-        f"against the CAD: tolerance window +{st['max_positive_mm']:.2f}/{st['max_negative_mm']:.2f} mm, "
+        f"against the CAD: tolerance window {st['max_positive_mm']:+.2f}/{st['max_negative_mm']:+.2f} mm, "
         f"std {st['std_mm']:.2f} mm, completeness {100 * rep['completeness']:.1f} % (report: {out / 'compare'})",
     ]
