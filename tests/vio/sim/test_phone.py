@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from vio.readers import open_capture
 from vio.sim.api import load_scenario, simulate
 from vio.sim.imu import PhoneImu
-from vio.sim.phone import PRESETS, band_rows, exposure_times_ns, render_radiance
+from vio.sim.phone import PRESETS, band_rows, exposure_times_ns, render_radiance, simulate_options
 from vio.sim.render import Renderer
 from vio.sim.writer import render_phone_pngs  # noqa: F401 - the writer's phone path is importable
 
@@ -172,3 +172,16 @@ def test_bad_phone_options_are_one_line_errors(args, message, tmp_path):
     assert "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "c").exists()
+
+
+def test_options_default_knobs_alone_and_the_phone_preset():
+    assert simulate_options() == {}  # the default capture, through the unchanged renderer
+    alone = simulate_options(readout_ms=20.0)
+    assert set(alone) == {"phone"}
+    rs = alone["phone"]
+    assert (rs.readout_s, rs.exposure_s, rs.time_offset_s, rs.portrait, rs.auto_exposure) == (0.02, 0, 0, False, False)
+    phone = simulate_options("phone", time_offset_ms=-5.0, imu_rate_hz=200.0)
+    assert phone["phone"].time_offset_s == pytest.approx(-0.005)
+    assert phone["phone"].readout_s == pytest.approx(0.020) and phone["phone"].exposure_s == pytest.approx(0.010)
+    assert phone["imu_rate_hz"] == 200.0 and isinstance(phone["phone_imu"], PhoneImu)
+    assert simulate_options("phone")["imu_rate_hz"] == 100.0
