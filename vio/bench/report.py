@@ -279,7 +279,10 @@ def _meta_line(meta: dict[str, Any]) -> str:
     """Where the suite ran, and what was resumed, retried or failed."""
     line = f"Scheduler: {meta['scheduler']} ({meta['workers']} workers); {meta['jobs']} jobs"
     extra = [f"{meta[k]} {k}" for k in ("resumed", "retried", "failed") if meta.get(k)]
-    return "\n" + line + (f" ({', '.join(extra)})" if extra else "") + ".\n"
+    line += f" ({', '.join(extra)})" if extra else ""
+    if meta.get("resumed"):
+        line += f"; this session ran {meta['jobs'] - meta['resumed']} of them in {meta['wall_s'] / 60:.1f} min"
+    return "\n" + line + ".\n"
 
 
 def _fmt_mm(v: float | None, digits: int = 2) -> str:
@@ -307,7 +310,8 @@ def write_reports(
     if meta is not None:
         data["bench"] = meta
     write_json(out / "results.json", data)
-    text = markdown(clean, f"vio bench: {suite.name} suite", wall_s, jobs)
+    resumed = bool(meta and meta.get("resumed"))  # this session's wall time is not the suite's: say so below
+    text = markdown(clean, f"vio bench: {suite.name} suite", None if resumed else wall_s, jobs)
     if meta is not None:
         text += _meta_line(meta)
     text += stats_markdown(stats) + rpe_markdown(collect_rpe(out))

@@ -138,6 +138,14 @@ def _ci(s: dict[str, Any], scale: float = 1.0, digits: int = 1) -> str:
     return text if s["lo"] is None else f"{text} [{s['lo'] * scale:.{digits}f}, {s['hi'] * scale:.{digits}f}]"
 
 
+def _ratio_ci(s: dict[str, Any]) -> str:
+    """A ratio's `median [lo, hi]` to three significant digits (0.00123 and 1049 alike)."""
+    if s["median"] is None:
+        return "-"
+    text = f"{s['median']:.3g}"
+    return text if s["lo"] is None else f"{text} [{s['lo']:.3g}, {s['hi']:.3g}]"
+
+
 def _ate_ci(s: dict[str, Any]) -> str:
     """ATE in mm, or in m (marked) for a method that is off by metres."""
     if s["median"] is not None and abs(s["median"]) >= 1.0:
@@ -172,7 +180,7 @@ def stats_markdown(stats: dict[str, Any]) -> str:
             "|---|---:|---|---:|",
         ]
         for c in stats["ratio_to_batch"]:
-            lines.append(f"| {c['a']} | {c['n']} | {_ci(c['ratio'], 1.0, 2)} | {c['a_lower']}/{c['n']} |")
+            lines.append(f"| {c['a']} | {c['n']} | {_ratio_ci(c['ratio'])} | {c['a_lower']}/{c['n']} |")
     if stats["paired"]:
         lines += [
             "",
@@ -188,6 +196,6 @@ def stats_markdown(stats: dict[str, Any]) -> str:
             p = "-" if c["sign_test_p"] is None else f"{c['sign_test_p']:.3g}"
             lines.append(
                 f"| {c['a']} | {c['b']} | {c['key'].removeprefix('ate_').removesuffix('_m')} | {c['n']} | "
-                f"{_ci(c['ratio'], 1.0, 2)} | {c['a_lower']}/{c['n']} | {p} |"
+                f"{_ratio_ci(c['ratio'])} | {c['a_lower']}/{c['n']} | {p} |"
             )
     return "\n".join(lines) + "\n"

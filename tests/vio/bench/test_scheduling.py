@@ -148,6 +148,7 @@ def test_an_interrupted_suite_resumes_from_the_jobs_on_disk(tmp_path):
     assert [{k: r[k] for k in SAME} for r in again] == [{k: r[k] for k in SAME} for r in first]
     data = json.loads((tmp_path / "results.json").read_text())
     assert [j["resumed"] for j in data["jobs"]] == [True, False] and data["bench"]["resumed"] == 1
+    assert "2 jobs (1 resumed); this session ran 1 of them in" in (tmp_path / "results.md").read_text()
     # a record of another job (the method changed since) is not taken as done
     assert load_done(tmp_path, cases[0], IMU_ONLY) is not None
     assert load_done(tmp_path, cases[0], Method("imu_only", "imu_only", overrides=("run.progress=true",))) is None
