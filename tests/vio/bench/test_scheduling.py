@@ -4,6 +4,7 @@ are retried once; an interrupted suite resumes from the jobs on disk."""
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -152,6 +153,29 @@ def test_an_interrupted_suite_resumes_from_the_jobs_on_disk(tmp_path):
     # a record of another job (the method changed since) is not taken as done
     assert load_done(tmp_path, cases[0], IMU_ONLY) is not None
     assert load_done(tmp_path, cases[0], Method("imu_only", "imu_only", overrides=("run.progress=true",))) is None
+
+
+def test_ctrl_c_stops_the_suite_and_the_same_command_resumes_it(tmp_path):
+    suite = tmp_path / "two.yaml"
+    suite.write_text(
+        "name: two\nplots: false\nmethods: [{name: imu_only, kind: imu_only}]\n"
+        "cases:\n  - grid: {scenario: [orbit, room]}\n"
+        "    seed: 0\n    imu: phone\n    duration_s: 2\n    images: false\n"
+    )
+    cmd = [sys.executable, "-m", "vio.cli", "bench", "--suite", str(suite), "--jobs", "1", "--out", str(tmp_path / "o")]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    lines = []
+    for line in proc.stderr:  # interrupt as soon as the first job is done
+        lines.append(line)
+        if "1/2 jobs done" in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    rest = proc.stderr.read()
+    assert proc.wait(timeout=120) == 130, "".join(lines) + rest
+    assert "stopped with 1/2 jobs done; run it again to resume" in rest and "interrupted" in rest
+    assert "Traceback" not in rest
+    again = _vio("bench", "--suite", str(suite), "--jobs", "1", "--out", str(tmp_path / "o"))
+    assert again.returncode == 0 and "1 done before, resumed" in again.stderr and "2/2 jobs done" in again.stderr
 
 
 def test_cli_bench_help_names_the_schedulers():
