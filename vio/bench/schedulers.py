@@ -89,10 +89,13 @@ class DaskScheduler(Scheduler):
             logging.getLogger("distributed").setLevel(logging.ERROR)
         self.cluster = None
         if address is None:
-            self.cluster = LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                silence_logs=logging.ERROR,
-            )  # fmt: skip
+            try:
+                self.cluster = LocalCluster(
+                    n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )  # fmt: skip
+            except (OSError, RuntimeError, TimeoutError) as exc:
+                raise SchedulerError(f"cannot start a Dask LocalCluster of {workers} workers: {exc}") from None
             super().__init__("dask", captures or str(out / "captures"), str(out / "runs"), workers)
         else:
             super().__init__(address, captures, None, 0)
@@ -102,7 +105,7 @@ class DaskScheduler(Scheduler):
                 timeout=f"{CONNECT_TIMEOUT_S}s",
                 set_as_default=False,
             )
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, ValueError) as exc:  # refused, timed out, or not an address
             self._close_cluster()
             first = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
             raise SchedulerError(f"cannot reach the Dask scheduler at {address}: {first}") from None
@@ -154,5 +157,14 @@ def open_scheduler(spec: str, out: Path, workers: int, captures: str | None = No
     if spec == "dask":
         return DaskScheduler(out, captures, workers, None)
     if "://" in spec:
+        from urllib.parse import urlsplit
+
+        try:
+            parts = urlsplit(spec)
+            ok = bool(parts.hostname) and (parts.port is not None or parts.netloc.lower() == parts.hostname)
+        except ValueError:
+            ok = False
+        if not ok or parts.path or parts.query:
+            raise SchedulerError(f"{spec!r} is not a Dask scheduler address (tcp://HOST:PORT)")
         return DaskScheduler(out, captures, workers, spec)
     raise SchedulerError(f"unknown scheduler {spec!r}; use local, dask or a Dask scheduler address tcp://HOST:PORT")

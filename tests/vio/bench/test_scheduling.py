@@ -114,6 +114,10 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path):
     assert r.returncode == 2 and r.stderr.strip() == (
         "vio bench: error: unknown scheduler 'slurm'; use local, dask or a Dask scheduler address tcp://HOST:PORT"
     )
+    r = _vio("bench", "--suite", "tiny", "--scheduler", "tcp://127.0.0.1:port", "--out", str(tmp_path))
+    assert r.returncode == 2 and r.stderr.strip() == (
+        "vio bench: error: 'tcp://127.0.0.1:port' is not a Dask scheduler address (tcp://HOST:PORT)"
+    )
     r = _vio("bench", "--suite", str(tmp_path / "none.yaml"), "--out", str(tmp_path))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "cannot read the suite" in r.stderr
 
