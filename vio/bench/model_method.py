@@ -64,12 +64,27 @@ def write_known_positions(capture: Path, path: Path, hz: float, sigma_m: float, 
     return path
 
 
+def _die_with_parent() -> None:
+    """In a child, before exec: ask Linux to SIGKILL it when its parent (the bench worker) dies, so a worker the
+    bench times out or kills leaves no model step running on (no-op elsewhere)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
 def _vio(args: list[str], log_path: Path) -> float:
     """Run `vio ARGS...` as a child process (its output to `log_path`); returns its wall time. Raises with the
     command's last log line when it fails."""
     t0 = time.perf_counter()
     with open(log_path, "w", encoding="utf-8") as logf:
-        proc = subprocess.run([sys.executable, "-m", "vio.cli", *args], stdout=logf, stderr=subprocess.STDOUT)
+        proc = subprocess.run(
+            [sys.executable, "-m", "vio.cli", *args],
+            stdout=logf,
+            stderr=subprocess.STDOUT,
+            preexec_fn=_die_with_parent,  # noqa: PLW1509 - only prctl, no locks or threads touched
+        )
     if proc.returncode != 0:
         tail = log_path.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:]
         raise RuntimeError(f"vio {args[0]} failed: {tail[0] if tail else 'no output'}")

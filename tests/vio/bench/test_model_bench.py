@@ -70,3 +70,33 @@ def test_part_scores_and_table_from_the_commands_files(tmp_path):
     assert "| cube | model | 101 | 4.0 | +0.200 | 0.150 |" in md
     assert "| cube | model | 1/2 |" in md and "3/3" in md
     assert model_markdown([failed]) == ""
+
+
+def test_model_steps_die_with_their_worker(tmp_path):
+    """A worker killed (the bench's time limit, SIGKILL) takes its model step with it: no orphan left computing."""
+    import os
+    import signal
+    import time
+
+    pid_file = tmp_path / "child.pid"
+    code = (
+        "import subprocess, sys, time; from vio.bench.model_method import _die_with_parent; "
+        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=_die_with_parent); "
+        f"open({str(pid_file)!r}, 'w').write(str(p.pid)); time.sleep(60)"
+    )
+    worker = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
+    for _ in range(100):
+        if pid_file.exists() and pid_file.read_text():
+            break
+        time.sleep(0.1)
+    child = int(pid_file.read_text())
+    worker.send_signal(signal.SIGKILL)
+    worker.wait()
+    for _ in range(50):
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.1)
+    os.kill(child, signal.SIGKILL)
+    raise AssertionError("the model step outlived its worker")
