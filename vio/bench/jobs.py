@@ -43,6 +43,16 @@ def job_spec(case: Case, method: Method) -> dict[str, Any]:
     return json.loads(json.dumps({"case": case.__dict__, "method": method.__dict__}))
 
 
+def _die_with_parent() -> None:
+    """In the child, before exec: Linux SIGKILLs it when the thread that started it dies (a Dask worker killed, a
+    bench interrupted), so no job runs on unseen and writes into a run folder after its suite stopped."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
 def run_child(task: dict[str, Any], folder: Path) -> dict[str, Any]:
     """Run one task in a child process; returns its result dict (or an `error` dict when the child failed)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -55,7 +65,10 @@ def run_child(task: dict[str, Any], folder: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     with open(folder / "worker.log", "w", encoding="utf-8") as logf:
         try:
-            proc = subprocess.run(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, timeout=TASK_TIMEOUT_S)
+            proc = subprocess.run(
+                cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, timeout=TASK_TIMEOUT_S,
+                preexec_fn=_die_with_parent,  # only prctl between fork and exec: no locks, no threads
+            )  # fmt: skip
             code = proc.returncode
         except subprocess.TimeoutExpired:
             code = None

@@ -4,11 +4,13 @@ are retried once; an interrupted suite resumes from the jobs on disk."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -180,6 +182,39 @@ def test_ctrl_c_stops_the_suite_and_the_same_command_resumes_it(tmp_path):
     assert "Traceback" not in rest
     again = _vio("bench", "--suite", str(suite), "--jobs", "1", "--out", str(tmp_path / "o"))
     assert again.returncode == 0 and "1 done before, resumed" in again.stderr and "2/2 jobs done" in again.stderr
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_bench_leaves_no_job_running(tmp_path):
+    """SIGKILL to `vio bench` (no chance to clean up) takes its running job's child process with it."""
+    cmd = [sys.executable, "-m", "vio.cli", "bench", "--suite", "tiny", "--jobs", "1", "--out", str(tmp_path)]
+    bench = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.DEVNULL)
+    child = None
+    for _ in range(600):  # the simulation's child process starts within a few seconds
+        kids = [c for c in _children(bench.pid) if b"vio.bench.worker" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        if kids:
+            child = kids[0]
+            break
+        time.sleep(0.1)
+    assert child is not None, "no job child process appeared"
+    bench.kill()
+    bench.wait()
+    for _ in range(100):
+        if not Path(f"/proc/{child}").exists() or "Z" in Path(f"/proc/{child}/stat").read_text().split()[2]:
+            return
+        time.sleep(0.1)
+    os.kill(child, signal.SIGKILL)
+    raise AssertionError("the job's child process outlived the bench")
 
 
 def test_cli_bench_help_names_the_schedulers():
