@@ -90,6 +90,7 @@ def phone_capture(tmp_path_factory):
     """A 0.7 s phone capture through the command line (rolling shutter, blur, clock offset, 100 Hz jittery IMU)."""
     out = tmp_path_factory.mktemp("phone") / "c"
     cmd = [*VIO, "simulate", "orbit", "--duration", "0.7", "--seed", "4", "--camera", "phone", "--out", str(out)]
+    cmd += ["--mars", str(out.parent / "mars")]
     subprocess.run(cmd, check=True, capture_output=True, timeout=120)
     return out
 
@@ -105,6 +106,7 @@ def test_phone_capture_states_its_clock_offset_and_frames_are_rendered_at_the_tr
     assert np.all(t_true - stamps == 15_000_000)
     cap = open_capture(phone_capture)
     assert np.array_equal(cap.frame_t_ns, stamps)
+    assert np.array_equal(open_capture(phone_capture.parent / "mars").frame_t_ns, stamps)  # --mars: same stamps
     assert cap.frame_t_ns[0] >= cap.imu.t_ns[0]  # every stamp inside the IMU's span: no frame is dropped
     # the image matches a render at the true time far better than one at the (offset) stamp
     sc = load_scenario("orbit", seed=4, duration_s=0.7, phone=PRESETS["phone"], imu_rate_hz=100.0)
