@@ -86,7 +86,11 @@ def _pipeline(capture_dir: Path, out: Path, method: Method) -> tuple[dict, float
 
 def _info(run: dict) -> dict:
     keys = ("status", "initialisation", "num_keyframes", "num_states", "num_landmarks", "recoveries", "refine")
-    return {k: run[k] for k in keys if k in run}
+    info = {k: run[k] for k in keys if k in run}
+    sigma = (run.get("scale") or {}).get("sigma_rel")  # the run's own 1-sigma relative scale uncertainty
+    if sigma is not None:
+        info["scale_sigma_rel"] = sigma
+    return info
 
 
 def run_vio(capture_dir: Path, out: Path, method: Method) -> list[MethodOutput]:

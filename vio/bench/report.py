@@ -1,7 +1,8 @@
 """Benchmark outputs: `results.json` (one row per run) and `results.md` (medians per scenario / IMU / method).
 
 Row fields (null where not applicable): `ate_se3_m`, `ate_posyaw_m` (RMSE after SE3 / 4-DoF position+yaw
-alignment, m; null for `vision_only`, whose scale is unknown), `ate_sim3_m` and `scale` (Sim3 alignment), `drift_pct`
+alignment, m; null for `vision_only`, whose scale is unknown), `ate_sim3_m` and `scale` (Sim3 alignment),
+`scale_sigma_rel` (the run's stated 1-sigma relative scale uncertainty, `run.json` `scale.sigma_rel`), `drift_pct`
 (final position error as % of the ground-truth path length, after the 4-DoF alignment; Sim3 for `vision_only`;
 none for `imu_only`, which starts from the ground truth's initial state),
 `rtf` (estimation wall time / capture duration), `latency_ms_p50/p95/max` (per-keyframe update time of online
@@ -31,6 +32,7 @@ ROW_KEYS = (
     "ate_posyaw_m",
     "ate_sim3_m",
     "scale",
+    "scale_sigma_rel",
     "drift_pct",
     "rtf",
     "latency_ms_p50",

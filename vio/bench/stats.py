@@ -8,7 +8,9 @@ one value there is no interval; with two or three it spans nearly the whole data
 than the sample): the number of captures is always printed beside it.
 
 Metrics: `ate_m` (the method's headline ATE: SE3, Sim3 for vision_only; m), `scale_err_pct` (100 (1/s - 1) with
-s the Sim3 scale that maps the estimate onto the truth: positive when the estimate is too large), `drift_pct`.
+s the Sim3 scale that maps the estimate onto the truth: positive when the estimate is too large),
+`scale_sigma_pct` (the run's stated 1-sigma scale uncertainty, %), `drift_pct`; and `scale_within_95`, how many
+runs' scale error lies within 1.96 of their stated sigmas (the stated uncertainty's honesty).
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from vio.bench.ranking import headline_key, method_rank
 
 N_RESAMPLES = 4000
 LEVEL = 0.95
-METRICS = ("ate_m", "scale_err_pct", "drift_pct")
+METRICS = ("ate_m", "scale_err_pct", "scale_sigma_pct", "drift_pct")
+Z95 = 1.959964  # two-sided 95 % of a normal distribution
 
 
 def seed_for(label: str) -> int:
@@ -56,7 +59,18 @@ def _metric(row: dict[str, Any], metric: str) -> float | None:
     if metric == "scale_err_pct":
         s = row.get("scale")
         return None if s is None or s <= 0 else 100.0 * (1.0 / s - 1.0)
+    if metric == "scale_sigma_pct":
+        sigma = row.get("scale_sigma_rel")
+        return None if sigma is None else 100.0 * sigma
     return row.get(metric)
+
+
+def scale_coverage(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """How many runs' scale error lies within the run's own stated 95 % interval (|1/s - 1| <= 1.96 sigma_rel):
+    `{"within": k, "n": runs that state a sigma}`. About 95 % of n when the stated sigma is honest."""
+    pairs = [(_metric(r, "scale_err_pct"), _metric(r, "scale_sigma_pct")) for r in rows]
+    pairs = [(e, s) for e, s in pairs if e is not None and s is not None and math.isfinite(e) and math.isfinite(s)]
+    return {"within": sum(abs(e) <= Z95 * s for e, s in pairs), "n": len(pairs)}
 
 
 def _ok(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -79,6 +93,7 @@ def group_stats(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         entry: dict[str, Any] = {"scenario": key[0], "imu": key[1], "method": key[2], "runs": len(groups[key])}
         for m in METRICS:
             entry[m] = median_ci([_metric(r, m) for r in groups[key]], seed_for("|".join((*key, m))))
+        entry["scale_within_95"] = scale_coverage(groups[key])
         out.append(entry)
     return out
 
@@ -160,16 +175,20 @@ def stats_markdown(stats: dict[str, Any]) -> str:
         f"## Medians with {LEVEL:.0%} bootstrap intervals",
         "",
         f"Median [interval] over seeds ({stats['method']}); `all` pools every capture of a method. ATE in mm "
-        "(SE3; vision_only Sim3), scale error in % (positive: the estimate is too large), drift in % of path "
-        "length. With n below 4 an interval is only as wide as the data.",
+        "(SE3; vision_only Sim3), scale error in % (positive: the estimate is too large), the run's stated 1-sigma "
+        "scale uncertainty in % and how many runs' scale error lies within 1.96 of it (about 95 % if the stated "
+        "sigma is honest), drift in % of path length. With n below 4 an interval is only as wide as the data.",
         "",
-        "| scenario | IMU | method | n | ATE mm | scale error % | drift % |",
-        "|---|---|---|---:|---|---|---|",
+        "| scenario | IMU | method | n | ATE mm | scale error % | stated scale sigma % | within 1.96 sigma | drift % |",
+        "|---|---|---|---:|---|---|---|---:|---|",
     ]
     for g in stats["groups"]:
+        cov = g["scale_within_95"]
+        within = f"{cov['within']}/{cov['n']}" if cov["n"] else "-"
         lines.append(
             f"| {g['scenario']} | {g['imu']} | {g['method']} | {g['ate_m']['n']} | {_ate_ci(g['ate_m'])} | "
-            f"{_ci(g['scale_err_pct'], 1.0, 3)} | {_ci(g['drift_pct'], 1.0, 2)} |"
+            f"{_ci(g['scale_err_pct'], 1.0, 3)} | {_ci(g['scale_sigma_pct'], 1.0, 3)} | {within} | "
+            f"{_ci(g['drift_pct'], 1.0, 2)} |"
         )
     if stats["ratio_to_batch"]:
         lines += [

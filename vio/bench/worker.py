@@ -65,6 +65,8 @@ def score(case: Case, res, gt, capture_duration_s: float, folder: Path) -> dict[
     m_sim3 = evaluate(gt, est, align="sim3")
     row["ate_sim3_m"] = m_sim3["ate_rmse_m"]
     row["scale"] = m_sim3["scale"]
+    if res.align == "se3":  # a metric method states its scale's uncertainty (vision_only has no metric scale)
+        row["scale_sigma_rel"] = (res.info or {}).get("scale_sigma_rel")
     metrics = {"sim3": m_sim3}
     if res.align != "sim3":  # a metric method: SE3 and 4-DoF alignments are meaningful
         metrics["se3"] = evaluate(gt, est, align="se3")

@@ -124,10 +124,11 @@ def test_tiny_suite_vio_row(tiny_bench):
     assert "error" not in vio, vio.get("error")
     assert vio["ate_se3_m"] < 0.05  # 4 s orbit, phone IMU: the estimator must be far better than imu_only
     assert vio["latency_ms_p50"] is not None and vio["latency_ms_max"] >= vio["latency_ms_p50"]
+    assert 0 < vio["scale_sigma_rel"] < 0.5  # the run's stated scale uncertainty, from run.json
     vo = next(r for r in rows if r["method"] == "vision_only")
     assert "error" not in vo, vo.get("error")
     assert vo["ate_se3_m"] is None and vo["ate_posyaw_m"] is None  # no metric scale: Sim3 only
-    assert vo["ate_sim3_m"] is not None and vo["scale"] > 0
+    assert vo["ate_sim3_m"] is not None and vo["scale"] > 0 and vo["scale_sigma_rel"] is None
 
 
 def test_cli_bench_help():

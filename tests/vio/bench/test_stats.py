@@ -65,3 +65,14 @@ def test_vision_only_is_compared_on_sim3_and_single_runs_have_no_interval():
     assert compare(rows, "vio", "vision_only")["ratio"]["median"] == pytest.approx(0.5)
     g = group_stats(rows)[0]
     assert g["ate_m"]["lo"] is None and "| orbit | phone | vio | 1 | 2.0 |" in stats_markdown(bench_stats(rows))
+
+
+def test_scale_coverage_counts_errors_within_the_stated_sigma():
+    """Scale errors of +0.5 %, -1.0 % and +3.0 % against a stated sigma of 1 %: two lie within 1.96 sigma."""
+    rows = [_row("vio", i, 0.003, scale=1 / (1 + e), scale_sigma_rel=0.01) for i, e in enumerate((0.005, -0.01, 0.03))]
+    rows.append(_row("vio", 9, 0.003, scale=1.0))  # a run that states no sigma is not counted
+    g = next(g for g in group_stats(rows) if g["scenario"] == "orbit")
+    assert g["scale_within_95"] == {"within": 2, "n": 3}
+    assert g["scale_sigma_pct"]["median"] == pytest.approx(1.0) and g["scale_err_pct"]["median"] == pytest.approx(0.25)
+    assert "| orbit | phone | vio | 4 | 3.0 [3.0, 3.0] | 0.250 [" in stats_markdown(bench_stats(rows))
+    assert "| 1.000 [1.000, 1.000] | 2/3 |" in stats_markdown(bench_stats(rows))
