@@ -113,6 +113,7 @@ def model_from_views(
     # sparse landmarks scatter a few mm about the table: the part is the cluster standing clear of that
     min_height = SPARSE_MIN_HEIGHT_M if sparse_from_run else 1e-3
     roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world, min_height)
+    fuse.check_grid(roi, options.voxel_m)  # before the stereo: a region that swallowed the table fails now
     t0 = _timed(timings, "isolate", t0)
     adjust_report = None
     if options.adjust:

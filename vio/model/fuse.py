@@ -271,6 +271,23 @@ def _integrate(
         acc.weight[sl] += np.where(near, wt, zero)
 
 
+MAX_GRID_VOXELS = 2**31
+
+
+def check_grid(roi: Roi, voxel_m: float, coarse_factor: int = 4) -> None:
+    """Raise ModelError (one line, with the region's size) when the fusion grid over `roi` would be too large: called
+    before the stereo too, so a region of interest that swallowed the table fails in seconds, not after an hour."""
+    cell = coarse_factor * voxel_m
+    size = np.array([roi.hi[0] - roi.lo[0], roi.hi[1] - roi.lo[1], roi.hi[2] + 2.0 * voxel_m])
+    shape = np.maximum(np.ceil(size / cell).astype(int), 1) * coarse_factor
+    if np.prod(shape.astype(np.float64)) > MAX_GRID_VOXELS:
+        mm = " x ".join(f"{1e3 * v:.0f}" for v in size)
+        raise ModelError(
+            f"the region of interest is {mm} mm: a fusion grid of {shape.tolist()} voxels is too large; "
+            "give the part's box with --roi, or a larger --voxel-mm"
+        )
+
+
 def fuse_depth_maps(
     views: Sequence[View],
     depth_maps: Sequence[DepthMap],
@@ -295,8 +312,7 @@ def fuse_depth_maps(
     lo = np.array([roi.lo[0], roi.lo[1], -2.0 * voxel_m])
     shape_c = np.maximum(np.ceil((np.array([roi.hi[0], roi.hi[1], roi.hi[2]]) - lo) / cell).astype(int), 1)
     shape = shape_c * f
-    if np.prod(shape) > 2**31:
-        raise ModelError(f"fusion grid {shape.tolist()} is too large; use a larger voxel or a smaller region")
+    check_grid(roi, voxel_m, f)
     origin = lo + 0.5 * voxel_m
     t0 = time.perf_counter()
     prepared = []
