@@ -14,6 +14,7 @@ import numpy as np
 from vio.atomic import atomic_open, write_json
 from vio.capture import Capture
 from vio.config import Config
+from vio.errors import EstimationError
 from vio.geometry import R_to_quat_wxyz
 from vio.health import RunHealth
 from vio.records import EstimatorStats, LandmarkMap, StateEstimate
@@ -24,9 +25,20 @@ STATES_HEADER = "t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz,bwx,bwy,bwz,bax,bay,baz"
 
 
 def trajectory_of(states: list[StateEstimate]) -> Trajectory:
-    """Body (IMU) poses in world of the given keyframe states."""
+    """Body (IMU) poses in world of the given keyframe states. Raises EstimationError (one line) when the estimate
+    diverged: a position beyond 1e6 m or not finite, or a rotation that is not one (the solver blew up)."""
     t = np.array([s.t_ns for s in states], np.int64)
     p = np.array([s.world_T_body[:3, 3] for s in states]).reshape(-1, 3)
+    R = np.array([s.world_T_body[:3, :3] for s in states]).reshape(-1, 3, 3)
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad = ~np.isfinite(p).all(axis=1) | (np.abs(p) > 1e6).any(axis=1) | ~np.isfinite(R).all(axis=(1, 2))
+        bad |= np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2), initial=0.0) > 1e-3
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise EstimationError(
+            f"the estimate diverged: keyframe {k} (t = {t[k] * 1e-9:.3f} s) has no valid pose "
+            f"({int(bad.sum())} of {len(states)} keyframes); nothing written"
+        )
     q = (
         R_to_quat_wxyz(np.array([s.world_T_body[:3, :3] for s in states])).reshape(-1, 4)
         if states

@@ -145,3 +145,28 @@ def test_too_many_corrupt_frames_end_with_one_line_and_a_failed_run_json(orbit, 
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "failed" and "health.max_skipped_frames" in run["reasons"][0]
     assert not (out / "trajectory.tum").exists()
+
+
+def test_a_diverged_estimate_is_a_one_line_failure_not_a_traceback():
+    """Measured: vision-only on a 15 s figure eight blew up (rotations of 1e10) and writing trajectory.tum raised a
+    scipy traceback. A pose that is not one now ends the run as failed, in one line naming the keyframe."""
+    import numpy as np
+    import pytest
+
+    from vio.errors import EstimationError
+    from vio.outputs import trajectory_of
+    from vio.records import StateEstimate
+
+    def state(k: int, T: np.ndarray) -> StateEstimate:
+        return StateEstimate(k, 1_000_000_000 * k, T, np.zeros(3), np.zeros(3), np.zeros(3))
+
+    good = [state(k, np.eye(4)) for k in range(3)]
+    assert len(trajectory_of(good).t_ns) == 3
+    blown = np.eye(4)
+    blown[:3, :3] = [[1.7e9, 5.5e10, -6e8], [-7e8, -2.3e10, 2.5e8], [-2e9, -6.5e10, 7e8]]
+    with pytest.raises(EstimationError, match=r"diverged: keyframe 3 \(t = 3.000 s\).*1 of 4"):
+        trajectory_of([*good, state(3, blown)])
+    far = np.eye(4)
+    far[0, 3] = np.nan
+    with pytest.raises(EstimationError, match="keyframe 0"):
+        trajectory_of([state(0, far)])
