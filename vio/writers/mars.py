@@ -25,7 +25,7 @@ import yaml
 
 from vio.atomic import write_text
 from vio.capture import Capture
-from vio.errors import CaptureError
+from vio.errors import CaptureError, SimulationError
 from vio.kalibr import camchain_yaml_text, kalibr_imu_yaml_text
 
 UNIX_OFFSET_NS = 1_600_000_000_000_000_000  # a fixed sensor-clock to Unix-time offset for the last column
@@ -83,7 +83,10 @@ def write_mars_from_asl(
 def write_h264(path: Path, cap: Capture, portrait: bool = False, crf: int = DEFAULT_CRF) -> None:
     """H.264 video of the capture's frames (grayscale, coded as yuv420p), presentation times from the frame times
     (microseconds), written atomically. `portrait` stores a +90 deg display rotation (the pixels are not turned)."""
-    import av
+    try:
+        import av
+    except ImportError:
+        raise SimulationError("writing H.264 needs PyAV: pip install 'vio[video]' (optional: GPL codecs)") from None
 
     t0 = int(cap.frame_t_ns[0])
     tmp = path.with_name(f".{path.name}.tmp")
