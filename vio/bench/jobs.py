@@ -30,10 +30,13 @@ from typing import Any
 
 from vio.atomic import write_json
 from vio.bench.suites import Case, Method
+from vio.children import die_with_parent
 
 log = logging.getLogger(__name__)
 
 TASK_TIMEOUT_S = 1800.0  # a single simulation or method run taking longer than this is recorded as failed
+MODEL_TASK_TIMEOUT_S = 4 * 3600.0  # a part-model task (run, model, measure, compare): the first one on a busy
+# machine took 44 min for the model step alone
 GROUND_TRUTH = Path("mav0") / "state_groundtruth_estimate0" / "data.csv"  # in a capture
 MAX_RETURNED_FILE_BYTES = 5_000_000  # larger files of a run (dense clouds, meshes) stay on the worker
 
@@ -43,14 +46,9 @@ def job_spec(case: Case, method: Method) -> dict[str, Any]:
     return json.loads(json.dumps({"case": case.__dict__, "method": method.__dict__}))
 
 
-def _die_with_parent() -> None:
-    """In the child, before exec: Linux SIGKILLs it when the thread that started it dies (a Dask worker killed, a
-    bench interrupted), so no job runs on unseen and writes into a run folder after its suite stopped."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+def _timeout(task: dict[str, Any]) -> float:
+    """The time limit of a task: longer for the part-model methods."""
+    return MODEL_TASK_TIMEOUT_S if (task.get("method") or {}).get("kind") == "model" else TASK_TIMEOUT_S
 
 
 def run_child(task: dict[str, Any], folder: Path) -> dict[str, Any]:
@@ -66,8 +64,8 @@ def run_child(task: dict[str, Any], folder: Path) -> dict[str, Any]:
     with open(folder / "worker.log", "w", encoding="utf-8") as logf:
         try:
             proc = subprocess.run(
-                cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, timeout=TASK_TIMEOUT_S,
-                preexec_fn=_die_with_parent,  # only prctl between fork and exec: no locks, no threads
+                cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, timeout=_timeout(task),
+                preexec_fn=die_with_parent,  # only prctl between fork and exec: no locks, no threads
             )  # fmt: skip
             code = proc.returncode
         except subprocess.TimeoutExpired:
@@ -76,7 +74,7 @@ def run_child(task: dict[str, Any], folder: Path) -> dict[str, Any]:
         return json.loads(result_path.read_text(encoding="utf-8"))
     tail = (folder / "worker.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:]
     if code is None:
-        why = f"timed out after {TASK_TIMEOUT_S:.0f} s"
+        why = f"timed out after {_timeout(task):.0f} s"
     elif code < 0:
         why = f"worker killed by signal {-code}"
     else:

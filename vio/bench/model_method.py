@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from vio.bench.suites import Case, Method
+from vio.children import die_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -64,16 +65,6 @@ def write_known_positions(capture: Path, path: Path, hz: float, sigma_m: float, 
     return path
 
 
-def _die_with_parent() -> None:
-    """In a child, before exec: ask Linux to SIGKILL it when its parent (the bench worker) dies, so a worker the
-    bench times out or kills leaves no model step running on (no-op elsewhere)."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 def _vio(args: list[str], log_path: Path) -> float:
     """Run `vio ARGS...` as a child process (its output to `log_path`); returns its wall time. Raises with the
     command's last log line when it fails."""
@@ -83,7 +74,7 @@ def _vio(args: list[str], log_path: Path) -> float:
             [sys.executable, "-m", "vio.cli", *args],
             stdout=logf,
             stderr=subprocess.STDOUT,
-            preexec_fn=_die_with_parent,  # noqa: PLW1509 - only prctl, no locks or threads touched
+            preexec_fn=die_with_parent,  # the step dies with its worker (no orphan computing on)
         )
     if proc.returncode != 0:
         tail = log_path.read_text(encoding="utf-8", errors="replace").strip().splitlines()[-1:]

@@ -8,13 +8,11 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import ctypes
 import importlib.util
 import logging
 import os
 import re
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -24,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
+from vio.children import terminate_with_parent
 from vio.errors import VioError
 
 log = logging.getLogger(__name__)
@@ -31,7 +30,6 @@ log = logging.getLogger(__name__)
 LOOPBACK = "127.0.0.1"
 STARTUP_TIMEOUT_S = 20.0
 NATIVE_SETTLE_S = 2.0
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
 ANSI_ESCAPE = re.compile(r"\x1b\[[0-9;]*m")
 
 
@@ -83,12 +81,6 @@ def rerun_executable() -> str:
     return found
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    """Linux: have the kernel send SIGTERM to the viewer when the process that started it dies, however it dies."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-
-
 def free_loopback_port() -> int:
     """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -137,7 +129,7 @@ def start_viewer_process(kind: str, web_port: int = 0) -> ViewerProcess:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             start_new_session=True,
-            preexec_fn=_die_with_parent if kind == "web" and sys.platform.startswith("linux") else None,  # noqa: PLW1509
+            preexec_fn=terminate_with_parent if kind == "web" and sys.platform.startswith("linux") else None,  # noqa: PLW1509
         )
     viewer = ViewerProcess(kind, proc, grpc_port, http_port, Path(name))
     _wait_listening(proc, grpc_port, viewer.log_path)

@@ -80,8 +80,8 @@ def test_model_steps_die_with_their_worker(tmp_path):
 
     pid_file = tmp_path / "child.pid"
     code = (
-        "import subprocess, sys, time; from vio.bench.model_method import _die_with_parent; "
-        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=_die_with_parent); "
+        "import subprocess, sys, time; from vio.children import die_with_parent; "
+        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent); "
         f"open({str(pid_file)!r}, 'w').write(str(p.pid)); time.sleep(60)"
     )
     worker = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
