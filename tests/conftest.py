@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -39,3 +40,9 @@ def sim_capture(tmp_path_factory):
         return cache[key]
 
     return make
+
+
+def default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default, so Python turns it into KeyboardInterrupt even when the
+    tests themselves run with SIGINT ignored (a shell's background job without job control ignores it)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

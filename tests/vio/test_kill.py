@@ -14,14 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT
+from tests.conftest import ROOT, default_sigint
 
 ESTIMATE_FILES = ("trajectory.tum", "states.csv", "landmarks.ply")
 
 
 def _start(capture: Path, out: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "vio.cli", "run", str(capture), "--out", str(out), "--set", "run.progress=false"]
-    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint
+    )
 
 
 def _status(out: Path) -> str | None:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT
+from tests.conftest import ROOT, default_sigint
 from vio.bench import JOB_RECORD, load_done, run_suite
 from vio.bench.suites import IMU_ONLY, Case, Method, Suite
 
@@ -169,7 +169,7 @@ def test_ctrl_c_stops_the_suite_and_the_same_command_resumes_it(tmp_path):
         "    seed: 0\n    imu: phone\n    duration_s: 2\n    images: false\n"
     )
     cmd = [sys.executable, "-m", "vio.cli", "bench", "--suite", str(suite), "--jobs", "1", "--out", str(tmp_path / "o")]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint)
     lines = []
     for line in proc.stderr:  # interrupt as soon as the first job is done
         lines.append(line)
