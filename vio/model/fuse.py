@@ -99,6 +99,12 @@ def despeckle(depth_m: np.ndarray, speckle_m: float) -> tuple[np.ndarray, np.nda
     return d, valid, med
 
 
+def _closing(valid: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Morphological closing of the known pixels: a hole in a surface is inside it, the background beyond a
+    silhouette is not."""
+    return cv2.erode(cv2.dilate(valid.astype(np.uint8), kernel), kernel, borderValue=1).astype(bool)
+
+
 def fill_holes(d: np.ndarray, valid: np.ndarray, radius_px: float, max_rms_m: float) -> np.ndarray:
     """Mask of the small holes of a depth image that lie in a plane, filled in `d` in place with that plane.
 
@@ -112,7 +118,7 @@ def fill_holes(d: np.ndarray, valid: np.ndarray, radius_px: float, max_rms_m: fl
     if r < 1:
         return holes
     kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    closed = cv2.erode(cv2.dilate(valid.astype(np.uint8), kernel), kernel, borderValue=1).astype(bool)
+    closed = _closing(valid, kernel)
     lab, n = ndimage.label(closed & ~valid)
     if n == 0:
         return holes
@@ -210,7 +216,7 @@ def hole_bounds(d: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray
         return None
     valid = np.isfinite(d)
     kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    closed = cv2.erode(cv2.dilate(valid.astype(np.uint8), kernel), kernel, borderValue=1).astype(bool)
+    closed = _closing(valid, kernel)
     far = cv2.dilate(np.where(valid, d, np.float32(-np.inf)), kernel)
     near = cv2.erode(np.where(valid, d, np.float32(np.inf)), kernel)
     hole = closed & ~valid & np.isfinite(far) & np.isfinite(near)
