@@ -22,6 +22,9 @@ from vio.model.records import Roi, SupportPlane, View
 log = logging.getLogger(__name__)
 
 _MIN_POINTS = 50  # fewer points than this cannot give a plane or a part
+_PROBE = 200  # points nearest the look-at point that set the cluster's cell size: a run's landmarks put 300-400 on
+# a 76 mm cube, so 2000 reached into the table's haze (landmarks 8-30 mm above it) and gave 0.19-0.25 m cells
+# that joined the table to the part (60 s orbits, seeds 101 and 102: 1.4 x 1.1 m regions; 200: 0.10 x 0.10 m)
 
 
 def support_plane(
@@ -223,8 +226,8 @@ def region_of_interest(
     where the cameras look (`look_at_point`), its extent plus `margin_m` (below the plane too).
 
     The cluster: points from `min_height_m` up, in cells of `cell_m` holding >= `min_points` points, 26-connected
-    (cell_m None: 2.5 times the median distance to the `min_points`-th neighbour among the 2000 points nearest to
-    the look-at point, at least 2 mm). `user_box` (2, 3) world min/max corners replaces the cluster (the support
+    (cell_m None: 2.5 times the median distance to the `min_points`-th neighbour among the `_PROBE` points nearest
+    to the look-at point, at least 2 mm). `user_box` (2, 3) world min/max corners replaces the cluster (the support
     frame then has x along the world x; without a plane, it has the world's axes and its origin at the centre of
     the box's bottom). Raises ModelError when no part is found, or without both a plane and a user box.
     """
@@ -247,8 +250,8 @@ def region_of_interest(
     if len(above) < _MIN_POINTS:
         raise ModelError(f"no part found: only {len(above)} points stand {1e3 * min_height_m:g} mm above the plane")
     if cell_m is None:  # cells that hold min_points points of the part's surface: 2.5 x the k-th neighbour distance
-        near_target = np.linalg.norm(above - target, axis=1)
-        probe = above[np.argpartition(near_target, min(2000, len(above) - 1))[:2000]]
+        near_target = np.linalg.norm(above - target, axis=1)  # among the points nearest the look-at point, few
+        probe = above[np.argpartition(near_target, min(_PROBE, len(above) - 1))[:_PROBE]]  # enough to be the part
         knn = cKDTree(above).query(probe, k=min_points + 1)[0][:, -1]
         cell_m = float(max(2.5 * np.median(knn), 2e-3))
     cells, labels, point_cell = _clusters(above, cell_m, min_points)
