@@ -65,8 +65,8 @@ def test_packaged_suites_keep_their_cases_and_methods(name):
 
 def test_scale_suite_uses_held_out_seeds():
     scale = get_suite("scale")
-    assert len(scale.cases) == 15 and {c.seed for c in scale.cases} == {301, 302, 303, 304, 305}
-    assert {c.scenario for c in scale.cases} == {"orbit", "figure8", "room"} and scale.methods == (VIO,)
+    assert len(scale.cases) == 21 and {c.seed for c in scale.cases} == set(range(301, 308))
+    assert {c.scenario for c in scale.cases} == {"orbit", "figure8", "room"} and scale.methods == (VIO_AND_BATCH,)
 
 
 def test_model_method_fields_survive_yaml():
