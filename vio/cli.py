@@ -44,6 +44,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         stills_hz=args.stills,
         stills_size=args.stills_size,
         board=args.board,
+        calibration_motion=args.motion,
         mars=args.mars,
         **phone,
     )
@@ -153,6 +154,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stills", type=float, default=0.0, metavar="HZ", help="full-resolution stills rate (0: off)")
     p.add_argument("--stills-size", type=_size, default=(2016, 1512), metavar="WxH", help="stills size, px")
     p.add_argument("--board", help="calibration scenario's board: chessboard:COLSxROWS:SQUARE_MM | charuco:...")
+    p.add_argument(
+        "--motion",
+        choices=["sway", "excite"],
+        help="calibration scenario's motion: sway (default; for intrinsics) or excite (brisk turns about every axis, "
+        "for camera-IMU calibration)",
+    )
     p.add_argument(
         "--camera",
         choices=["default", "phone"],

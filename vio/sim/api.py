@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from vio.sim import rig, scenarios
 from vio.sim.definitions import read_definition
 from vio.sim.imu import PhoneImu, grade_by_name, imu_calib, simulate_imu
 from vio.sim.parts import build_part
-from vio.sim.phone import PhoneCamera, portrait_camera
+from vio.sim.phone import KNOBS_ONLY, PhoneCamera, portrait_camera
 from vio.sim.scenario import Scenario
 from vio.sim.scene import SURFACES
 from vio.sim.trajectory import Trajectory, camera_driven, spline_trajectory
@@ -173,6 +174,17 @@ def _from_file(path: Path) -> tuple[Trajectory, int, np.ndarray]:
     return spline, t_first_ns, traj.p_world
 
 
+def _calibration_time_offset(phone: PhoneCamera | None) -> float:
+    """The calibration scenario's camera clock offset, s: of the camera knobs it takes `--time-offset-ms` alone."""
+    if phone is None:
+        return 0.0
+    if replace(phone, time_offset_s=KNOBS_ONLY.time_offset_s) != KNOBS_ONLY:
+        raise SimulationError(
+            "the calibration scenario takes --time-offset-ms but not --camera, --readout-ms or --exposure-ms"
+        )
+    return float(phone.time_offset_s)
+
+
 def simulate(
     scenario: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -188,20 +200,34 @@ def simulate(
     """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
 
     `images=False` writes IMU, ground truth, calibration and scene only (cam0/data.csv lists no frames).
-    The scenario `calibration` (a board on a wall, `vio.sim.calibration`) takes `board=SPEC` in `scene`.
+    The scenario `calibration` (a board on a wall, `vio.sim.calibration`) takes `board=SPEC`,
+    `calibration_motion=sway|excite` and, of the camera knobs, the time offset alone in `scene`.
     `workers` render processes (default: 2, or 1 for short captures). `scene` holds `load_scenario`'s part,
     part_units, surface, stills_hz, stills_size, phone, imu_rate_hz and phone_imu; `mars` (a folder) also
     writes the capture as a MARS logger folder with H.264 video (`vio.writers.mars`).
     """
     board = scene.pop("board", None)
+    motion = scene.pop("calibration_motion", None)
     if str(scenario) == "calibration":  # a board on a wall (vio.sim.calibration), not a scene with the part
         from vio.sim.calibration import DEFAULT_BOARD, simulate_calibration
 
-        if {"phone", "phone_imu", "imu_rate_hz"} & set(scene) or mars is not None:
+        offset_s = _calibration_time_offset(scene.pop("phone", None))
+        if {"phone_imu", "imu_rate_hz"} & set(scene) or mars is not None:
             raise SimulationError("--camera, --imu-rate and --mars are not available for the calibration scenario")
-        return simulate_calibration(out, board or DEFAULT_BOARD, seed, duration_s, imu_grade, overwrite, images)
-    if board is not None:
-        raise SimulationError("--board is for the calibration scenario (vio simulate calibration --board ...)")
+        return simulate_calibration(
+            out,
+            board or DEFAULT_BOARD,
+            seed,
+            duration_s,
+            imu_grade,
+            overwrite,
+            images,
+            time_offset_s=offset_s,
+            motion=motion or "sway",
+        )
+    for name, value in (("--board", board), ("--motion", motion)):
+        if value is not None:
+            raise SimulationError(f"{name} is for the calibration scenario (vio simulate calibration {name} ...)")
     sc = load_scenario(scenario, seed, duration_s, imu_grade, **scene)
     _, ss_imu, ss_img, _, ss_stills, _, ss_jitter = _streams(seed)
     imu, gt = simulate_imu(

@@ -5,8 +5,13 @@ world x, its y down the wall, its z into the wall. The camera sways in front of 
 (sums of sinusoids with seeded phases, smooth to any order, so the IMU sees the true derivatives): +-0.2 m sideways,
 +-0.13 m up and down, 0.33-0.67 m from the wall, its aim wandering over the board and its roll +-30 deg, so the board
 is seen head-on and obliquely, near the image centre and near its edges. Frames are rendered by
-`vio.sim.board_render` through the rig's camera (pinhole, radtan); the IMU, ground truth and calibration files are
-those of every simulated capture. `scene/board.yaml` records the board spec and `world_T_board`.
+`vio.sim.board_render` through the rig's camera (pinhole, radtan, global shutter); the IMU, ground truth and
+calibration files are those of every simulated capture. `scene/board.yaml` records the board spec,
+`world_T_board`, the true `body_T_cam` and the camera clock's offset.
+
+Clock offset (`time_offset_s`, Kalibr's `timeshift_cam_imu`: t_imu = t_cam + shift): frame k is exposed at the true
+time t0 + k / rate on the IMU clock and stamped `t_true - time_offset_s` on the camera clock; frames whose stamp falls
+outside the IMU's span are left out. With no offset the capture is the one written before the offset existed.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ WALL_Y_M = 1.0
 BOARD_CENTRE_M = np.array([0.0, WALL_Y_M, 1.3])
 WORLD_R_BOARD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # board x, y (down), z (into wall)
 IMAGE_NOISE_GREY = 2.0  # sensor noise, grey levels (sigma)
+MAX_TIME_OFFSET_S = 0.5  # the largest camera clock offset simulated, s (as the phone camera's)
 
 
 def world_T_board(board: Board) -> np.ndarray:
@@ -67,18 +73,52 @@ def calibration_camera(rng: np.random.Generator) -> PoseFn:
     return fn
 
 
+def excite_camera(rng: np.random.Generator) -> PoseFn:
+    """Camera pose function of the brisk motion a camera-IMU calibration wants (Kalibr's advice: excite every
+    axis): the sway of `calibration_camera` plus turns about every axis at 0.4-1.3 Hz, the aim swinging +-0.1 m over
+    the board (about +-11 deg of pan and tilt), the roll +-35 deg, and the hand's shakes of +-2 cm; the board stays in
+    view."""
+    sweep = Sinusoids.make([1.0], [1.0 / 9.0], 1, rng)
+    lift = Sinusoids.make([1.0], [1.0 / 7.0], 1, rng)
+    reach = Sinusoids.make([1.0], [1.0 / 5.5], 1, rng)
+    aim = Sinusoids.make([0.06, 0.04], [0.45, 1.1], 2, rng)
+    roll = Sinusoids.make([0.45, 0.17], [0.35, 1.3], 1, rng)
+    shake = Sinusoids.make([0.012, 0.008], [0.8, 1.7], 3, rng)
+
+    def fn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        distance = 0.52 + 0.12 * reach(t)[:, 0]
+        p = np.column_stack(
+            [0.15 * sweep(t)[:, 0], WALL_Y_M - distance, BOARD_CENTRE_M[2] + 0.1 * lift(t)[:, 0]]
+        ) + shake(t)
+        a = aim(t)
+        target = BOARD_CENTRE_M + np.column_stack([a[:, 0], np.zeros(len(t)), a[:, 1]])
+        return p, look_at(p, target, roll(t)[:, 0])
+
+    return fn
+
+
+MOTIONS = {"sway": calibration_camera, "excite": excite_camera}  # the intrinsics' gentle sway; camera-IMU's brisk one
+
+
 def board_texture(board: Board) -> BoardTexture:
     if board.kind == "chessboard":
         return chessboard_texture(board.cols, board.rows, board.square_m)
     return charuco_texture(board.cols, board.rows, board.square_m, board.marker_m, board.dictionary)
 
 
-def _board_yaml(spec: str, board: Board, T: np.ndarray) -> str:
+def _matrix(T: np.ndarray) -> list[list[float]]:
+    return [[round(float(v), 12) for v in row] for row in T]
+
+
+def _board_yaml(spec: str, board: Board, T: np.ndarray, body_T_cam: np.ndarray, time_offset_s: float) -> str:
     meta = {
         "board": spec,
         "description": board.describe(),
-        "world_T_board": [[round(float(v), 12) for v in row] for row in T],
+        "world_T_board": _matrix(T),
+        "body_T_cam": _matrix(body_T_cam),
+        "timeshift_cam_imu_s": float(time_offset_s),
         "frames": "world z up; board x along its columns, y along its rows (down the wall), z into the wall; m",
+        "convention": "frames are stamped on the camera clock: t_imu = t_cam + timeshift_cam_imu_s",
     }
     return "# vio simulated calibration board (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False)
 
@@ -91,10 +131,15 @@ def simulate_calibration(
     imu_grade: str = "phone",
     overwrite: bool = False,
     images: bool = True,
+    time_offset_s: float = 0.0,
+    motion: str = "sway",
+    camera_motion: PoseFn | None = None,
 ) -> Path:
     """Write the calibration scenario's capture (ASL layout) under `out`; returns `out` as a Path.
 
-    Seeds are split like every scenario's (`SeedSequence(seed).spawn(5)`: motion, IMU, image noise)."""
+    Seeds are split like every scenario's (`SeedSequence(seed).spawn(5)`: motion, IMU, image noise).
+    `time_offset_s` is the camera clock's offset (module docstring); `motion` one of MOTIONS; `camera_motion`
+    replaces it (a pose function of time in s, as `calibration_camera` returns), e.g. a motion without rotation."""
     try:
         board = parse_board(board_spec)
     except CalibrationError as exc:  # the same one-line message, as the simulator's error
@@ -104,9 +149,16 @@ def simulate_calibration(
         raise SimulationError(f"duration must be positive, got {duration_s}")
     if seed < 0:
         raise SimulationError(f"seed must be non-negative, got {seed}")
+    if not np.isfinite(time_offset_s) or abs(time_offset_s) > MAX_TIME_OFFSET_S:
+        raise SimulationError(
+            f"time offset must be within +-{MAX_TIME_OFFSET_S * 1e3:g} ms, got {time_offset_s * 1e3:g}"
+        )
+    if motion not in MOTIONS:
+        raise SimulationError(f"calibration motion must be one of {', '.join(MOTIONS)}, got {motion!r}")
     ss_motion, ss_imu, ss_img, _, _ = np.random.SeedSequence(seed).spawn(5)
     camera = rig.default_camera()
-    traj = Trajectory(camera_driven(calibration_camera(np.random.default_rng(ss_motion)), camera.body_T_cam), dur)
+    pose_fn = MOTIONS[motion](np.random.default_rng(ss_motion)) if camera_motion is None else camera_motion
+    traj = Trajectory(camera_driven(pose_fn, camera.body_T_cam), dur)
     grade = grade_by_name(imu_grade)
     imu, gt = simulate_imu(traj, rig.T0_NS, dur, rig.IMU_RATE_HZ, grade, np.random.default_rng(ss_imu))
     T_board = world_T_board(board)
@@ -115,17 +167,22 @@ def simulate_calibration(
         writer.write_camera(camera, comment)
         writer.write_imu(imu_calib(grade, rig.IMU_RATE_HZ), imu, f"{comment}, {grade.name} IMU")
         writer.write_groundtruth(gt)
-        write_text(writer.scene_dir / "board.yaml", _board_yaml(board_spec, board, T_board))
+        meta = _board_yaml(board_spec, board, T_board, camera.body_T_cam, time_offset_s)
+        write_text(writer.scene_dir / "board.yaml", meta)
         if images:
             tex, rays = board_texture(board), undistorted_rays(camera)
             n = int(np.floor(dur * rig.CAMERA_RATE_HZ + 1e-9))
             t_ns = rig.T0_NS + np.round(np.arange(n) * (1e9 / rig.CAMERA_RATE_HZ)).astype(np.int64)
+            stamps = t_ns - int(round(time_offset_s * 1e9))
             p, R = traj.pose((t_ns - rig.T0_NS) * 1e-9)
+            t_end = rig.T0_NS + int(round(dur * 1e9))
             for k, seq in enumerate(ss_img.spawn(n)):
+                if not rig.T0_NS <= stamps[k] <= t_end:  # the noise stream stays per frame index
+                    continue
                 world_T_body = np.eye(4)
                 world_T_body[:3, :3], world_T_body[:3, 3] = R[k], p[k]
                 cam_T_board = inv_T(world_T_body @ camera.body_T_cam) @ T_board
                 img = render_board(tex, camera, cam_T_board, rays, np.random.default_rng(seq), IMAGE_NOISE_GREY)
-                writer.add_frame(int(t_ns[k]), img)
+                writer.add_frame(int(stamps[k]), img)
     log.info("simulated calibration (%.1f s, seed %d, %s) into %s", dur, seed, board.describe(), out)
     return Path(out)
