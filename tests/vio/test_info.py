@@ -143,3 +143,55 @@ def test_info_reports_every_unreadable_stream_of_a_phone_log(tmp_path):
     text = capture_info(path)
     assert "problems: " in text and "IMU timestamp goes backwards" in text
     assert "movie.mp4: video cannot be opened" in text and "calib.yaml: not valid YAML" in text
+
+
+@pytest.mark.parametrize("ros", ["ros1", "ros2"])
+def test_info_reports_every_problem_of_a_bag(tmp_path, ros):
+    """A bag whose calibration is not YAML and whose accelerometer is in g: both listed (the calibration used to
+    end the report), with what follows (no camera calibration), and the streams that read are described."""
+    import dataclasses
+
+    from tests.writers.ros import write_ros1, write_ros2
+    from vio.records import ImuSeries
+
+    cap = rotation_capture(duration_s=1.0, fps=10.0)
+    cap = dataclasses.replace(cap, imu=ImuSeries(cap.imu.t_ns, cap.imu.gyro, cap.imu.acc / 9.81))
+    if ros == "ros1":
+        path = write_ros1(cap, tmp_path / "log.bag")
+        calib = tmp_path / "calib.yaml"
+    else:
+        path = write_ros2(cap, tmp_path / "bag2")
+        calib = path / "calib.yaml"
+    calib.write_text("cam0: [unclosed\n")
+    r = subprocess.run([sys.executable, "-m", "vio.cli", "info", str(path)], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "problems: 3 (vio run stops at the first)" in r.stdout, r.stdout
+    assert "calib.yaml: not valid YAML" in r.stdout and "accelerometer looks like it is in g" in r.stdout
+    assert "no camera calibration: pass --calib" in r.stdout
+    assert f"format: {ros}" in r.stdout and "camera: 10 frames" in r.stdout and "imu: " in r.stdout
+
+
+def test_info_reports_every_problem_of_an_eqvio_file(tmp_path):
+    """gtsam's eqvio file with a bad IMU row, two bad feature rows and an unknown row type: the first problem of
+    each row type (with the count of its bad rows), and what follows from leaving those streams out."""
+    import gtsam
+
+    lines = open(gtsam.findExampleDataFile("eqvio_processed_30s.csv"), encoding="utf-8").read().splitlines()
+    imu_rows = [i for i, s in enumerate(lines) if s.startswith("imu,")]
+    feature_rows = [i for i, s in enumerate(lines) if s.startswith("vision_feature,")]
+    cells = lines[imu_rows[10]].split(",")
+    cells[2] = "soon"  # t_rel
+    lines[imu_rows[10]] = ",".join(cells)
+    for i in feature_rows[100:102]:
+        cells = lines[i].split(",")
+        cells[2] = "nan"
+        lines[i] = ",".join(cells)
+    lines.insert(5, "junk" + lines[5][lines[5].index(",") :])
+    path = tmp_path / "eqvio.csv"
+    path.write_text("\n".join(lines) + "\n")
+    text = capture_info(path)
+    assert "problems: 5 (vio run stops at the first)" in text, text
+    assert f"{path}:{imu_rows[10] + 2}: t_rel 'soon' is not a number" in text  # the insert moved the rows by one
+    assert f"{path}:{feature_rows[100] + 2}: t_rel is not finite (the first of 2 bad vision_feature rows)" in text
+    assert f"{path}:6: unknown row_type 'junk'" in text
+    assert "no IMU stream" in text and "no camera frames" in text

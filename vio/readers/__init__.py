@@ -69,8 +69,8 @@ def read_capture(
     **topics: str,
 ) -> Capture:
     """Read a capture in any supported format without the final checks (see `open_capture`). With a `problems`
-    list, a stream that cannot be read (ASL, MARS, OpenCamera, Sensor Logger) is left out and its error appended
-    there; bags and eqvio files raise their first problem."""
+    list, a stream that cannot be read is left out and its error appended there (eqvio files: the first problem of
+    each row type); a capture that cannot be read at all (not a bag, not an eqvio header) still raises."""
     path = Path(path)
     fmt = detect_format(path)
     if fmt in ("asl", "tumvi"):
@@ -84,7 +84,7 @@ def read_capture(
             path = path / sorted(n for n in os.listdir(path) if n.endswith(".bag"))[0]
         if path.is_file() and fmt == "ros2":
             path = path.parent
-        return read_bag(path, calib, topics.get("image_topic"), topics.get("imu_topic"))
+        return read_bag(path, calib, topics.get("image_topic"), topics.get("imu_topic"), problems)
     if fmt == "mars":
         from vio.readers.mars import read_mars
 
@@ -99,7 +99,7 @@ def read_capture(
         return read_sensorlogger(path, calib, problems)
     from vio.readers.eqvio import read_eqvio
 
-    return read_eqvio(path)
+    return read_eqvio(path, problems)
 
 
 def open_capture(

@@ -18,8 +18,9 @@ import numpy as np
 
 from vio.capture import Capture
 from vio.errors import CaptureError
-from vio.readers.common import frame_times, imu_from_table, make_capture, resolve_calibration
+from vio.readers.common import collect, frame_times, imu_from_table, make_capture, resolve_calibration
 from vio.readers.tables import Table
+from vio.records import ImuSeries
 
 log = logging.getLogger(__name__)
 
@@ -121,49 +122,68 @@ class _BagFrames:
         return decode_image(msg, conn.msgtype, f"{self.path} (topic {conn.topic}, image {i})")
 
 
-def read_bag(
-    path: Path, calib: str | Path | None = None, image_topic: str | None = None, imu_topic: str | None = None
-) -> Capture:
-    """Read a ROS 1 `.bag` file or a ROS 2 bag folder."""
-    path = Path(path)
-    warnings: list[str] = []
-    reader = _reader(path)
-    imu_conns = _pick(reader, (IMU_TYPE,), imu_topic, "IMU", path, warnings)
-    img_conns = _pick(reader, IMAGE_TYPES, image_topic, "image", path, warnings)
-    imu = None
-    if imu_conns:
-        t, vals = [], []
-        try:
-            for conn, _, raw in reader.messages(connections=imu_conns):
-                m = reader.deserialize(raw, conn.msgtype)
-                w, a = m.angular_velocity, m.linear_acceleration
-                t.append(_stamp_ns(m))
-                vals.append((w.x, w.y, w.z, a.x, a.y, a.z))
-        except Exception as exc:
-            raise CaptureError(f"IMU message cannot be decoded ({exc.__class__.__name__})", path) from None
-        v = np.asarray(vals, float).reshape(-1, 6)
-        rows = np.arange(1, len(t) + 1)
-        good = np.isfinite(v).all(axis=1)
-        if not good.all():
-            warnings.append(
-                f"{path}: {int((~good).sum())} IMU message(s) with NaN/inf dropped (topic {imu_conns[0].topic})"
-            )
-        table = Table(path, None, np.asarray(t, np.int64)[good], v[good], rows[good])
-        imu = imu_from_table(table, warnings)
+def _read_imu(reader: Any, conns: list[Any], path: Path, warnings: list[str]) -> ImuSeries:
+    """The IMU messages of `conns` as an ImuSeries (header stamps; messages with NaN/inf dropped with a warning)."""
+    t, vals = [], []
+    try:
+        for conn, _, raw in reader.messages(connections=conns):
+            m = reader.deserialize(raw, conn.msgtype)
+            w, a = m.angular_velocity, m.linear_acceleration
+            t.append(_stamp_ns(m))
+            vals.append((w.x, w.y, w.z, a.x, a.y, a.z))
+    except Exception as exc:
+        raise CaptureError(f"IMU message cannot be decoded ({exc.__class__.__name__})", path) from None
+    v = np.asarray(vals, float).reshape(-1, 6)
+    rows = np.arange(1, len(t) + 1)
+    good = np.isfinite(v).all(axis=1)
+    if not good.all():
+        warnings.append(f"{path}: {int((~good).sum())} IMU message(s) with NaN/inf dropped (topic {conns[0].topic})")
+    return imu_from_table(Table(path, None, np.asarray(t, np.int64)[good], v[good], rows[good]), warnings)
+
+
+def _image_times(reader: Any, conns: list[Any], path: Path, warnings: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(frame times ns, bag receive times ns of those frames) of the image messages of `conns`."""
     stamps: list[int] = []
     bag_times: list[int] = []
-    if img_conns:
-        for conn, bag_t, raw in reader.messages(connections=img_conns):
+    try:
+        for conn, bag_t, raw in reader.messages(connections=conns):
             m = reader.deserialize(raw, conn.msgtype)
             stamps.append(_stamp_ns(m))
             bag_times.append(bag_t)
+    except Exception as exc:
+        raise CaptureError(f"image message cannot be decoded ({exc.__class__.__name__})", path) from None
     st = np.asarray(stamps, np.int64)
     bt = np.asarray(bag_times, np.int64)
     if st.size and not st.any():
         warnings.append(f"{path}: image header stamps are all zero; using the bag's receive times")
         st = bt.copy()
     ft, idx = frame_times(Table(path, None, st, np.zeros((st.size, 0)), np.arange(1, st.size + 1)), warnings)
-    loader = _BagFrames(reader, img_conns or [], bt[idx], path)
-    cal = resolve_calibration(path if path.is_dir() else path.parent, calib)
+    return ft, bt[idx]
+
+
+def read_bag(
+    path: Path,
+    calib: str | Path | None = None,
+    image_topic: str | None = None,
+    imu_topic: str | None = None,
+    problems: list[str] | None = None,
+) -> Capture:
+    """Read a ROS 1 `.bag` file or a ROS 2 bag folder. With a `problems` list (`vio info`), a stream that cannot
+    be read (a topic not there, messages that do not decode, bad stamps, the calibration) is left out and its
+    error appended there; a bag that cannot be opened raises."""
+    path = Path(path)
+    warnings: list[str] = []
+    reader = _reader(path)
+    imu_conns = collect(lambda: _pick(reader, (IMU_TYPE,), imu_topic, "IMU", path, warnings), None, problems)
+    img_conns = collect(lambda: _pick(reader, IMAGE_TYPES, image_topic, "image", path, warnings), None, problems)
+    imu = collect(lambda: _read_imu(reader, imu_conns, path, warnings), None, problems) if imu_conns else None
+    no_frames = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    ft, bt = (
+        collect(lambda: _image_times(reader, img_conns, path, warnings), no_frames, problems)
+        if img_conns
+        else no_frames
+    )
+    loader = _BagFrames(reader, img_conns or [], bt, path)
+    cal = collect(lambda: resolve_calibration(path if path.is_dir() else path.parent, calib), None, problems)
     fmt = "ros2" if path.is_dir() else "ros1"
     return make_capture(path, fmt, cal, imu, ft, loader, warnings)
