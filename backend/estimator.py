@@ -24,6 +24,7 @@ import numpy as np
 from backend import factors as fb
 from backend.admission import LandmarkAdmission
 from backend.anchoring import KnownPosition, PositionAnchor
+from backend.fixed_lag import OldLandmarks
 from backend.graph_state import GraphState
 from backend.initialisation.alignment import static_start
 from backend.initialisation.inertial import InertialInitialiser
@@ -71,6 +72,7 @@ class VioEstimator:
         self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg.landmarks)
         self.admission = LandmarkAdmission(self.book, self.state, cfg.landmarks.prior_sigma_m)
         self.segments = TrackSegments(cfg.landmarks.max_track_keyframes)
+        self.old = OldLandmarks(self.state, cfg.smoother.map_sigma_m)  # fixed lag only (backend/fixed_lag.py)
         self.reidentification = Reidentification(
             cfg.reidentification,
             cfg.reidentification.enabled and self.use_imu,
@@ -106,6 +108,8 @@ class VioEstimator:
         self._init_kind = ""  # the start that succeeded: static | moving | visual
         self._timings_ms: list[float] = []
         self._num_still = 0  # keyframes with a zero-velocity update
+        self._num_variables: list[int] = []  # variables in the smoother after each steady-state keyframe
+        self._cpu_ms: list[float] = []  # CPU time of this process in each steady-state keyframe's update, ms
         self._scale: ScaleUncertainty | None = None  # from the graph, after finish()
 
     @property
@@ -206,12 +210,15 @@ class VioEstimator:
             num_track_splits=self.segments.num_splits,
             num_reidentified=self.reidentification.num_reidentified,
             num_loop_flushes=self.reidentification.num_loop_flushes,
+            num_landmarks_revived=self.old.num_revived,
             num_position_factors=self.anchor.num_factors if self.anchor is not None else 0,
             recoveries=tuple(self.recovery.events),
             reidentifications=tuple(self.reidentification.events),
             warnings=tuple(self._warnings),
             scale_sigma_rel=None if self._scale is None else self._scale.sigma_rel,
             scale_pairs=() if self._scale is None else self._scale.pairs,
+            smoother_variables=tuple(self._num_variables),
+            step_cpu_ms=tuple(self._cpu_ms),
             keyframe_projections=tuple(
                 (k, t, self.state.projections.get(k, 0)) for k, t in sorted(self.state.t_ns.items())
             ),
@@ -219,7 +226,7 @@ class VioEstimator:
 
     # ----------------------------------------------------------------- steady state
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         st = self.state
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         t_s = st.t_ns[k] * 1e-9
@@ -249,9 +256,12 @@ class VioEstimator:
         self._observe_landmarks(k, ids, pred.matrix(), graph, values, stamps, t_s)
         self.reidentification.flush(graph, k)
         try:
-            st.smoother.update(graph, values, stamps)
+            marginalised = st.smoother.update(graph, values, stamps)
             est = st.smoother.estimate_keys(st.recent_keys(k))
             st.dirty = True
+            st.absorb(marginalised)
+            for j, p in self.old.keep(marginalised).items():
+                self.reidentification.on_retired(j, p)
         except SolverFailure as exc:
             est = self._recover(prev, k, str(exc))
         st.absorb(est)
@@ -259,6 +269,8 @@ class VioEstimator:
             st.bias = st.values.atConstantBias(B(k))
         ms = (time.perf_counter() - t0) * 1e3
         self._timings_ms.append(ms)
+        self._num_variables.append(st.smoother.num_variables())
+        self._cpu_ms.append((time.process_time() - c0) * 1e3)
         return st.state(k, ms, self.use_imu)
 
     def _observe_landmarks(
@@ -278,10 +290,13 @@ class VioEstimator:
         for j in ids.tolist():
             tr = self.book.tracks[j]
             if tr.admitted:
-                if not smoother.has(L(j)):
+                old = not smoother.has(L(j))  # marginalised out of a fixed lag (None when not kept either)
+                if old and self.old.position(j) is None:
                     continue
                 gate = self.reidentification.gate_px(j, self.cfg.landmarks.max_reprojection_px)
                 if self._consistent(j, world_T_body, tr.views[k], gate):
+                    if old:
+                        self.old.revive(j, graph, values)
                     st.add_projection(self.reidentification.route(graph, j, k), k, j, tr.views[k])
                     stamps[L(j)] = t_s
                 else:
@@ -293,12 +308,15 @@ class VioEstimator:
             p = self.admission.admit(j, poses, graph, values, k_now=k)
             if p is not None:
                 st.set(L(j), p)
+                st.retired.pop(j, None)  # re-admitted after a rebuild: no longer an old landmark
                 self.reidentification.on_admit(j, p)
                 stamps[L(j)] = t_s
 
     def _consistent(self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float) -> bool:
         """A new view of landmark j reprojects within `gate_px` from the predicted pose."""
-        p = self.state.smoother.estimate_keys([L(j)]).atPoint3(L(j))
+        p = self.old.position(j)
+        if p is None:
+            p = self.state.smoother.estimate_keys([L(j)]).atPoint3(L(j))
         err, depth = self.book.reprojection_px(world_T_body, p, uv)
         return depth > 0.05 and err <= gate_px
 

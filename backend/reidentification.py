@@ -61,6 +61,11 @@ class Reidentification:
         """A landmark entered the graph at a steady-state keyframe: it becomes a re-identification candidate."""
         self.atlas.set_position(j, p_world)
 
+    def on_retired(self, j: int, p_world: np.ndarray) -> None:
+        """Landmark j left the fixed-lag window at p_world (backend/fixed_lag.py): it stays a candidate there."""
+        if j in self.atlas.rows:
+            self.atlas.set_position(j, p_world)
+
     def reidentify(
         self, prev: int, k: int, ids: np.ndarray, uv: np.ndarray, uv_distorted: np.ndarray, describe: Describe
     ) -> np.ndarray:
@@ -83,7 +88,7 @@ class Reidentification:
         max_age = self.cfg.max_age_keyframes
 
         def alive(j: int) -> bool:
-            return st.smoother.has(L(j)) and (max_age <= 0 or k - st.last_obs.get(j, k) <= max_age)
+            return (st.smoother.has(L(j)) or j in st.retired) and (max_age <= 0 or k - st.last_obs.get(j, k) <= max_age)
 
         found = self.atlas.match(world_T_body, uv[new], desc[new], ok[new], set(ids.tolist()), alive)
         out = ids.copy()

@@ -52,14 +52,24 @@ class Smoother:
         else:
             self._isam = gtsam.IncrementalFixedLagSmoother(self.cfg.lag_s, isam2_params(self.cfg))
         self._keys: set[int] = set()
+        self._stamps: dict[int, float] = {}  # fixed lag: key -> its latest timestamp, s (as the smoother holds it)
+
+    def num_variables(self) -> int:
+        """Variables in the solver now (fixed lag: the window only)."""
+        return len(self._keys)
 
     def has(self, key: int) -> bool:
         """True while `key` is a variable of the solver (fixed lag: not yet marginalised)."""
         return key in self._keys
 
-    def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, timestamps: dict[int, float]) -> None:
-        """Add factors and new variables; timestamps (s) are used by the fixed-lag smoother only."""
+    def update(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, timestamps: dict[int, float]
+    ) -> gtsam.Values:
+        """Add factors and new variables; timestamps (s) are used by the fixed-lag smoother only. Returns the last
+        estimate of the variables that this update marginalised (fixed lag; always empty for iSAM2)."""
+        leaving = self._leaving(timestamps)
         try:
+            retired = self.estimate_keys(leaving)
             if self.kind == "isam2":
                 self._isam.update(graph, values)
             else:
@@ -67,8 +77,21 @@ class Smoother:
         except RuntimeError as exc:
             raise SolverFailure(first_line(exc)) from exc
         self._keys.update(values.keys())
-        if self.kind == "fixed_lag":
-            self._keys &= set(self._isam.calculateEstimate().keys())
+        self._keys.difference_update(leaving)
+        for key in leaving:
+            del self._stamps[key]
+        return retired
+
+    def _leaving(self, timestamps: dict[int, float]) -> list[int]:
+        """Keys the fixed-lag smoother marginalises in an update with these new timestamps: the same rule as
+        gtsam's IncrementalFixedLagSmoother (a timestamp older than the newest one minus the lag, strictly)."""
+        if self.kind != "fixed_lag":
+            return []
+        self._stamps.update(timestamps)
+        if not self._stamps:
+            return []
+        cutoff = max(self._stamps.values()) - self.cfg.lag_s
+        return [key for key, t in self._stamps.items() if t < cutoff]
 
     def estimate_keys(self, keys: list[int]) -> gtsam.Values:
         """Current estimate of some pose/velocity/bias/point keys only (cheaper than `estimate()` on long runs)."""

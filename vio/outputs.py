@@ -149,6 +149,8 @@ def run_summary(
         "num_track_splits": stats.num_track_splits,
         "num_reidentified": stats.num_reidentified,
         "num_loop_flushes": stats.num_loop_flushes,
+        "num_landmarks_revived": stats.num_landmarks_revived,
+        "smoother_variables_max": max(stats.smoother_variables, default=0),
         "num_position_factors": stats.num_position_factors,
         "span_s": counts.span_s,
         "wall_time_s": counts.wall_s,

@@ -228,6 +228,9 @@ class EstimatorStats:
     recoveries: tuple[RecoveryEvent, ...]
     reidentifications: tuple[ReidentificationEvent, ...]
     warnings: tuple[str, ...]
+    num_landmarks_revived: int = 0  # old landmarks back in a fixed-lag window after being marginalised
+    smoother_variables: tuple[int, ...] = ()  # variables in the smoother after each steady-state keyframe
+    step_cpu_ms: tuple[float, ...] = ()  # CPU time of each steady-state keyframe's update (no start), ms
     scale_sigma_rel: float | None = None  # relative standard deviation of the metric scale, from the graph
     scale_pairs: tuple[tuple[int, int, float, float], ...] = ()  # (k_a, k_b, distance m, its sigma m) behind it
     # (k, t_ns, projection factors on the keyframe's pose in the whole graph) per keyframe, in time order; 0: the

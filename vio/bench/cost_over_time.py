@@ -1,0 +1,208 @@
+"""How the cost of `vio run` grows with the capture: per-keyframe latency and resident memory per minute.
+
+`python -m vio.bench.cost_over_time CAPTURE --out DIR [--preset NAME] [--set key=value ...]` runs the estimator on
+one capture in this process (as `vio run` does) while a thread samples the process's resident memory twice a
+second, tagged with the capture time of the frame being read. Each keyframe's update time comes from the run's
+own record (`keyframe_ms`, wall clock, and `step_cpu_ms`, this process's CPU time; ms), placed at its keyframe's
+capture time. Written to DIR: the run's files in `run/`, `cost.json` (per minute of capture: keyframes, latency
+p50/p95/p99/max ms, wall and CPU, peak and last resident memory MiB; the whole run's wall time, real-time
+factor, peak memory, the load average, ATE against the ground truth when the capture has one) and `cost.png`
+(latency and memory over the capture).
+
+Wall-clock latencies are only comparable between runs made under the same load (the load average at the start and
+the end is recorded beside them); CPU latencies much less depend on what else the machine runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import resource
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vio.atomic import ensure_dir, write_json
+
+log = logging.getLogger(__name__)
+
+SAMPLE_S = 0.5  # memory sampling period, s
+_PAGE_MIB = os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def rss_mib() -> float:
+    """Resident memory of this process now, MiB."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * _PAGE_MIB
+
+
+class MemorySampler:
+    """A daemon thread recording (capture time s, resident MiB) every `SAMPLE_S` while a run goes."""
+
+    def __init__(self) -> None:
+        self.t_capture_s = 0.0  # capture time of the frame being read, s from the first frame
+        self.samples: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def __enter__(self) -> MemorySampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.samples.append((self.t_capture_s, rss_mib()))
+
+    def _loop(self) -> None:
+        while not self._stop.wait(SAMPLE_S):
+            self.samples.append((self.t_capture_s, rss_mib()))
+
+
+def per_minute(t_s: np.ndarray, values: np.ndarray, minute_s: float = 60.0) -> list[dict[str, float]]:
+    """Latency percentiles (ms) of the keyframes in each minute of capture time (t_s from the first frame)."""
+    out = []
+    for m in range(int(np.ceil(max(t_s.max(initial=0.0), 1e-9) / minute_s))):
+        x = values[(t_s >= m * minute_s) & (t_s < (m + 1) * minute_s)]
+        if not x.size:
+            continue
+        row = {"minute": m + 1, "keyframes": int(x.size)}
+        row.update({f"p{q}": float(np.percentile(x, q)) for q in (50, 95, 99)})
+        row["max"] = float(x.max())
+        out.append(row)
+    return out
+
+
+def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -> dict[str, Any]:
+    """Run the estimator on `capture` into `out/run` and return the cost record (see the module docstring)."""
+    from vio.config import load_config
+    from vio.pipeline import run_capture
+    from vio.readers import open_capture
+
+    cfg = load_config(None, overrides + ["run.progress=false"], presets)
+    cap = open_capture(capture)
+    t0_ns = int(cap.frame_t_ns[0])
+    load_image = cap.load_image
+    load_start = os.getloadavg()
+    with MemorySampler() as sampler:
+
+        def tagged(i: int) -> np.ndarray:
+            sampler.t_capture_s = (int(cap.frame_t_ns[i]) - t0_ns) * 1e-9
+            return load_image(i)
+
+        cap.load_image = tagged
+        t_wall = time.perf_counter()
+        result = run_capture(cap, out / "run", cfg)
+        wall_s = time.perf_counter() - t_wall
+    stats = result.stats
+    steps = np.asarray(stats.keyframe_ms[1:], float)  # the first entry is the whole start window
+    kf_t = np.sort(np.array([t for _, t, _ in stats.keyframe_projections], np.int64))
+    t_s = (kf_t[len(kf_t) - len(steps) :] - t0_ns) * 1e-9
+    mem = np.asarray(sampler.samples, float).reshape(-1, 2)
+    minutes = per_minute(t_s, steps)
+    cpu = per_minute(t_s, np.asarray(stats.step_cpu_ms, float))
+    for row, row_cpu in zip(minutes, cpu, strict=True):
+        row["cpu"] = {q: row_cpu[q] for q in ("p50", "p95", "p99", "max")}
+        m = row["minute"]
+        inside = mem[(mem[:, 0] >= (m - 1) * 60.0) & (mem[:, 0] < m * 60.0), 1]
+        row["rss_peak_mib"] = float(inside.max()) if inside.size else float("nan")
+        row["rss_last_mib"] = float(inside[-1]) if inside.size else float("nan")
+    record: dict[str, Any] = {
+        "capture": str(capture),
+        "presets": presets,
+        "overrides": overrides,
+        "smoother": cfg.smoother.kind,
+        "span_s": result.summary["span_s"],
+        "wall_s": wall_s,
+        "realtime_factor": result.summary["span_s"] / wall_s,
+        "cpu_s": result.summary["cpu_time_s"],
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "load_average_start": load_start[0],
+        "load_average_end": os.getloadavg()[0],
+        "keyframes": int(steps.size),
+        "smoother_variables_max": result.summary.get("smoother_variables_max"),
+        "recoveries": len(stats.recoveries),
+        "refine": result.summary["refine"],
+        "per_minute": minutes,
+        "keyframe_t_s": t_s.round(3).tolist(),
+        "keyframe_ms": steps.round(2).tolist(),
+        "keyframe_cpu_ms": np.round(stats.step_cpu_ms, 2).tolist(),
+        "memory": mem.round(2).tolist(),
+    }
+    if cap.ground_truth is not None:
+        record["ate_se3_m"], record["scale"] = _ate(cap, out / "run" / "trajectory.tum")
+    return record
+
+
+def _ate(cap: Any, trajectory: Path) -> tuple[float, float]:
+    """ATE (SE3, m) and Sim3 scale of the run's trajectory against the capture's ground truth."""
+    from vio.metrics import evaluate
+    from vio.trajio import read_trajectory
+
+    gt_csv = Path(cap.root) / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    m = evaluate(read_trajectory(gt_csv), read_trajectory(trajectory), align="se3")
+    return m["ate_rmse_m"], m["scale"]
+
+
+def plot(record: dict[str, Any], path: Path, label: str) -> None:
+    """Latency of every keyframe and resident memory over the capture, one picture."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from vio.atomic import atomic_open
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    ax1.plot(record["keyframe_t_s"], record["keyframe_ms"], ".", ms=2, label="wall")
+    ax1.plot(record["keyframe_t_s"], record["keyframe_cpu_ms"], ".", ms=2, label="CPU")
+    ax1.set_yscale("log")
+    ax1.set_ylabel("keyframe update, ms")
+    ax1.legend(loc="upper left")
+    ax1.set_title(label)
+    mem = np.asarray(record["memory"]).reshape(-1, 2)
+    ax2.plot(mem[:, 0], mem[:, 1])
+    ax2.set_ylabel("resident memory, MiB")
+    ax2.set_xlabel("capture time, s")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m vio.bench.cost_over_time", description=__doc__.split("\n")[0])
+    ap.add_argument("capture")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--preset", action="append", default=[])
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    out = ensure_dir(args.out)
+    record = measure(args.capture, out, args.preset, args.overrides)
+    write_json(out / "cost.json", record)
+    plot(record, out / "cost.png", f"{Path(args.capture).name}: {record['smoother']} {' '.join(args.overrides)}")
+    for row in record["per_minute"]:
+        print(
+            f"minute {row['minute']}: {row['keyframes']} keyframes, latency ms p50 {row['p50']:.0f} p95 "
+            f"{row['p95']:.0f} p99 {row['p99']:.0f} max {row['max']:.0f} (CPU p95 {row['cpu']['p95']:.0f} p99 "
+            f"{row['cpu']['p99']:.0f} max {row['cpu']['max']:.0f}), RSS peak {row['rss_peak_mib']:.0f} MiB"
+        )
+    ate = f", ATE {1e3 * record['ate_se3_m']:.2f} mm" if "ate_se3_m" in record else ""
+    print(
+        f"wall {record['wall_s']:.0f} s ({record['realtime_factor']:.2f}x real time), peak RSS "
+        f"{record['peak_rss_mib']:.0f} MiB, load {record['load_average_start']:.1f}-{record['load_average_end']:.1f}"
+        f"{ate}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
