@@ -7,7 +7,9 @@ result is `cad_T_model`.
 Coarse: the oriented bounding boxes (and, for shapes whose box is ambiguous, the principal axes) of model and CAD,
 with every proper rotation that maps one box's axes onto the other's (24; those whose extents disagree are pruned),
 each refined by a few point-to-plane ICP iterations against samples of the CAD; the best is kept. Fine: robust
-point-to-plane ICP against the exact closest points of the CAD surface (`vio.model.closest`).
+point-to-plane ICP against the exact closest points of the CAD surface (`vio.model.closest`). The points are first
+thinned to an even density (one per cell of 1 % of their box's diagonal), so that a rough face does not outweigh
+a smooth one by its larger area.
 """
 
 from __future__ import annotations
@@ -28,8 +30,13 @@ log = logging.getLogger(__name__)
 
 _FINALISTS = 4  # coarse candidates refined further after the first few iterations
 _HUBER = 1.345  # Huber's threshold in robust scales (95 % efficiency for Gaussian noise)
-_MIN_SIGMA_MM = 0.05  # floor of the robust scale: below it, systematic deviations (a scale error) are not outliers
+_MIN_SIGMA_MM = 0.5  # floor of the robust scale: deviations of a few tenths (a scale error, a face a little
+# off) are weighed as least squares; at 0.05 mm the fit was nearly L1 and faces pulled by their point counts
 _EXACT_ITERATIONS = 5  # the last ICP iterations, against exact closest points (0.1-0.25 s each for 20k points)
+_MIN_REJECT_MM = 2.0  # deviations within this of the median are the part's, never rejected: when the sides of a
+# box fit to 0.3 mm, 6 robust scales rejected a top and bottom 0.7 mm off, and the box slid 8 mm along its height
+_EVEN_CELL = 0.01  # points thinned to one per cell of this share of their box's diagonal: a rough face (a
+# wrinkled marching-cubes top has twice a flat face's area) must not outweigh the others
 
 
 @dataclass(frozen=True)
@@ -38,7 +45,7 @@ class Registration:
 
     cad_T_model: np.ndarray  # (4, 4) rigid, model frame (mm) -> CAD frame (mm)
     rms_mm: float  # RMS point-to-surface distance of the inliers, mm
-    inlier_fraction: float  # share of the points within `reject_sigma` robust scales of the median residual
+    inlier_fraction: float  # share of the points within max(`reject_sigma` robust scales, 2 mm) of the median residual
     iterations: int  # fine ICP iterations run
     candidate: str  # the coarse candidate chosen, e.g. "obb/7" (frame kind / rotation index of 24)
     num_candidates: int  # coarse candidates refined (after pruning by extents)
@@ -85,6 +92,7 @@ def register(
         raise ModelError(f"the model's {len(points)} points all lie {where}: no surface to register to the CAD")
     rng = rng if rng is not None else np.random.default_rng(0)
     index = index if index is not None else build_index(cad.vertices, cad.faces)
+    points = _even(points, _EVEN_CELL * float(np.linalg.norm(np.ptp(points, axis=0))), rng)
     fine = points[rng.choice(len(points), min(fine_points, len(points)), replace=False)]
     coarse = fine[rng.choice(len(fine), min(coarse_points, len(fine)), replace=False)]
     candidates = _candidates(fine, np.asarray(cad.vertices, dtype=np.float64))
@@ -105,6 +113,15 @@ def register(
     iterations = it_near + it_exact
     log.info("registered %d points: RMS %.4f mm after %d iterations (from %s)", len(points), rms, iterations, name)
     return Registration(cad_T_model, rms, inliers, iterations, name, len(scored), coarse_rms)
+
+
+def _even(points: np.ndarray, cell: float, rng: np.random.Generator) -> np.ndarray:
+    """One point (a random one) per occupied cube of edge `cell` (same units): about even density over the surface."""
+    if not cell > 0:
+        return points
+    order = rng.permutation(len(points))
+    keys = np.floor(points[order] / cell).astype(np.int64)
+    return points[order[np.unique(keys, axis=0, return_index=True)[1]]]
 
 
 def _frames(points: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -163,8 +180,9 @@ def _icp(
     to rank candidates), inlier share, iterations run).
 
     Residuals are weighed by Huber's function of their distance from the median residual (scale: 1.4826 MAD, at
-    least 0.05 mm) and rejected beyond `reject_sigma` scales. About the median, not zero: a model with a systematic
-    offset (a scale error) is not tilted to shed its worst side, as trimming the worst share would do.
+    least `_MIN_SIGMA_MM`) and rejected beyond `reject_sigma` scales (and at least `_MIN_REJECT_MM`). About the
+    median, not zero: a model with a systematic offset (a scale error) is not tilted to shed its worst side, as
+    trimming the worst share would do.
     exact=False pairs each point with a near CAD sample (`nearest_samples`, no finer than `level`) and that sample's
     face plane: fast, for the first iterations; exact=True with its exact closest point on the CAD and the plane of
     that face.
@@ -182,7 +200,7 @@ def _icp(
         r = np.einsum("ij,ij->i", p - q, n)
         spread = np.abs(r - np.median(r))
         sigma = max(1.4826 * float(np.median(spread)), _MIN_SIGMA_MM)
-        inlier = spread <= reject_sigma * sigma
+        inlier = spread <= max(reject_sigma * sigma, _MIN_REJECT_MM)
         weight = np.where(spread <= _HUBER * sigma, 1.0, _HUBER * sigma / np.maximum(spread, 1e-12))[inlier]
         rms, share = float(np.sqrt(np.mean(r[inlier] ** 2))), float(inlier.mean())
         score = float(np.sqrt(np.mean(np.sort(r**2)[: max(1, int(0.9 * len(r)))])))
