@@ -1,5 +1,5 @@
-"""The calibration commands of the command line: `vio calibrate camera`, `vio calibrate imu` (thin over
-vio.calibrate). The camera-IMU calibration (issue 17's third part) is not implemented yet."""
+"""The calibration commands of the command line: `vio calibrate camera`, `vio calibrate imu` and
+`vio calibrate camera-imu` (thin over vio.calibrate)."""
 
 from __future__ import annotations
 
@@ -31,9 +31,29 @@ def _cmd_imu(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_camera_imu(args: argparse.Namespace) -> int:
+    from vio.calibrate.camera_imu_files import calibrate_camera_imu_files
+
+    print(
+        calibrate_camera_imu_files(
+            args.capture,
+            args.calib,
+            args.out,
+            board=args.board,
+            detector=args.detector,
+            max_offset_ms=args.max_offset_ms,
+        )
+    )
+    return 0
+
+
 def add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
-    """Register `vio calibrate camera|imu` on the top-level subcommands."""
-    cal = sub.add_parser("calibrate", help="camera intrinsics (board), IMU noise (Allan deviation); Kalibr YAML out")
+    """Register `vio calibrate camera|imu|camera-imu` on the top-level subcommands."""
+    cal = sub.add_parser(
+        "calibrate",
+        help="camera intrinsics (board), IMU noise (Allan deviation), camera-IMU extrinsics and time offset; "
+        "Kalibr YAML out",
+    )
     csub = cal.add_subparsers(dest="what", metavar="WHAT", required=True)
 
     p = csub.add_parser("camera", help="camera intrinsics from images or a video of a board")
@@ -72,3 +92,21 @@ def add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
         help="the factor VIO users commonly multiply the noise by (reported, not applied)",
     )
     p.set_defaults(func=_cmd_imu)
+
+    p = csub.add_parser("camera-imu", help="camera-IMU extrinsics and time offset from a capture of the board")
+    p.add_argument(
+        "capture", metavar="CAPTURE", help="a capture (any format vio reads) filming the board while turning"
+    )
+    p.add_argument(
+        "--calib",
+        help="the camera's camchain YAML (vio calibrate camera --out); default: the capture's own calibration",
+    )
+    p.add_argument("--out", required=True, help="the Kalibr camchain-imu YAML to write (report goes beside it)")
+    p.add_argument(
+        "--board",
+        help="the board (as for vio calibrate camera); default: the one named in camera_calibration.json beside "
+        "--calib; without a board, a capture with feature tracks gives the rotation and time offset only",
+    )
+    p.add_argument("--detector", choices=["classic", "sb"], default="classic", help="chessboard corner detector")
+    p.add_argument("--max-offset-ms", type=float, default=200.0, help="time offsets searched, +- ms")
+    p.set_defaults(func=_cmd_camera_imu)

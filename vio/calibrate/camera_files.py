@@ -40,9 +40,10 @@ def _camera_record(cal: CameraCalibration, mount: str, rate_hz: float) -> Camera
     return CameraCalib(cal.width, cal.height, cal.fx, cal.fy, cal.cx, cal.cy, cal.dist, body_T_cam, rate_hz)
 
 
-def _report(cal: CameraCalibration, vs: ViewSet, board_text: str, mount: str, rate_hz: float) -> dict:
+def _report(cal: CameraCalibration, vs: ViewSet, board_text: str, mount: str, rate_hz: float, spec: str) -> dict:
     return {
         "board": board_text,
+        "board_spec": spec,  # read back by vio calibrate camera-imu
         "model": cal.model,
         "resolution": [cal.width, cal.height],
         "params": cal.params(),
@@ -116,7 +117,7 @@ def calibrate_camera_files(
 
     write_bytes(folder / "camera_coverage.png", coverage_png(cal))
     write_bytes(folder / "camera_residuals.png", residuals_png(cal))
-    write_json(folder / "camera_calibration.json", _report(cal, vs, board.describe(), mount, rate))
+    write_json(folder / "camera_calibration.json", _report(cal, vs, board.describe(), mount, rate, board_spec))
     lines = [summary_text(cal, vs, board.describe())]
     lines.append(f"  T_cam_imu: nominal '{mount}' mount, not calibrated")
     if model != "radtan":
