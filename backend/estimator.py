@@ -259,7 +259,6 @@ class VioEstimator:
             marginalised = st.smoother.update(graph, values, stamps)
             est = st.smoother.estimate_keys(st.recent_keys(k))
             st.dirty = True
-            st.absorb(marginalised)
             for j, p in self.old.keep(marginalised).items():
                 self.reidentification.on_retired(j, p)
         except SolverFailure as exc:

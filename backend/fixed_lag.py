@@ -35,14 +35,8 @@ class OldLandmarks:
         self.num_revived = 0  # re-entries of old landmarks into the window
 
     def keep(self, marginalised: gtsam.Values) -> dict[int, np.ndarray]:
-        """File the landmarks among the just-marginalised variables (their last estimates); returns them by id."""
-        kept = {}
-        for key in marginalised.keys():
-            sym = gtsam.Symbol(key)
-            if chr(sym.chr()) == "l":
-                kept[int(sym.index())] = np.asarray(marginalised.atPoint3(key), float)
-        self.state.retired.update(kept)
-        return kept
+        """See `retire`."""
+        return retire(self.state, marginalised)
 
     def position(self, j: int) -> np.ndarray | None:
         """The kept world position (3,) m of old landmark j, or None when j is not an old landmark."""
@@ -55,6 +49,19 @@ class OldLandmarks:
         graph.add(fb.landmark_prior(j, p, self.sigma_m))
         self.num_revived += 1
         return p
+
+
+def retire(state: GraphState, marginalised: gtsam.Values) -> dict[int, np.ndarray]:
+    """Keep the last estimates of the variables an update marginalised (`Smoother.update` returns them) and file
+    the landmarks among them as old landmarks; returns those landmarks' positions by id."""
+    state.absorb(marginalised)
+    kept = {}
+    for key in marginalised.keys():
+        sym = gtsam.Symbol(key)
+        if chr(sym.chr()) == "l":
+            kept[int(sym.index())] = np.asarray(marginalised.atPoint3(key), float)
+    state.retired.update(kept)
+    return kept
 
 
 def window_stamps(state: GraphState, values: gtsam.Values, last_k: int) -> dict[int, float]:

@@ -14,24 +14,13 @@ import numpy as np
 
 from backend import factors as fb
 from backend.keys import B, V, X
-from backend.smoother import Smoother, SolverFailure
+from backend.smoother import Smoother, SolverFailure, value_of
 from vio.records import StateEstimate
 
 log = logging.getLogger(__name__)
 
 Warn = Callable[[str], None]
-
-
-def value_of(values: gtsam.Values, key: int) -> Any:
-    """The value of a key of any of the four kinds (X pose, V velocity, B bias, L point)."""
-    sym = chr(gtsam.Symbol(key).chr())
-    if sym == "x":
-        return values.atPose3(key)
-    if sym == "v":
-        return values.atVector(key)
-    if sym == "b":
-        return values.atConstantBias(key)
-    return values.atPoint3(key)
+__all__ = ["GraphState", "Warn", "value_of"]
 
 
 class GraphState:

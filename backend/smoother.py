@@ -7,6 +7,7 @@ after that the solver is half-updated and must be rebuilt (`Smoother.reset()`), 
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import gtsam
 
@@ -23,6 +24,18 @@ def first_line(exc: BaseException) -> str:
     """The first non-empty line of an exception message (GTSAM's start with a newline)."""
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
     return " ".join(lines[:2]) if lines else type(exc).__name__
+
+
+def value_of(values: gtsam.Values, key: int) -> Any:
+    """The value of a key of any of the four kinds (X pose, V velocity, B bias, L point)."""
+    sym = chr(gtsam.Symbol(key).chr())
+    if sym == "x":
+        return values.atPose3(key)
+    if sym == "v":
+        return values.atVector(key)
+    if sym == "b":
+        return values.atConstantBias(key)
+    return values.atPoint3(key)
 
 
 def isam2_params(cfg: SmootherConfig) -> gtsam.ISAM2Params:
@@ -69,7 +82,10 @@ class Smoother:
         estimate of the variables that this update marginalised (fixed lag; always empty for iSAM2)."""
         leaving = self._leaving(timestamps)
         try:
-            retired = self.estimate_keys(leaving)
+            retired = self.estimate_keys([key for key in leaving if key in self._keys])
+            for key in leaving:
+                if not retired.exists(key):  # new in this update and already older than the lag
+                    retired.insert(key, value_of(values, key))
             if self.kind == "isam2":
                 self._isam.update(graph, values)
             else:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import gtsam
 
 from backend.admission import LandmarkAdmission
-from backend.fixed_lag import window_stamps
+from backend.fixed_lag import retire, window_stamps
 from backend.graph_state import GraphState
 from backend.smoother import SolverFailure, batch_solve, first_line
 
@@ -34,12 +34,13 @@ def start_window(
     caller slides its window and retries with more keyframes)."""
     try:
         values = batch_solve(graph, values)
-        state.smoother.update(graph, values, window_stamps(state, values, last_k))
+        marginalised = state.smoother.update(graph, values, window_stamps(state, values, last_k))
     except (RuntimeError, SolverFailure) as exc:
         state.warn(f"{what} at keyframe {last_k} failed ({first_line(exc)}); retrying later")
         state.smoother.reset()
         admission.undo()
         return False
+    retire(state, marginalised)  # a lag shorter than the window: its first keyframes leave at once
     state.absorb(state.smoother.estimate())
     return True
 
