@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -28,12 +31,18 @@ def _cmd_model(args: argparse.Namespace) -> int:
 
     voxel_m = args.voxel_mm * 1e-3
     opts = ModelOptions(args.source, args.max_views, voxel_m, roi_world=args.roi, adjust=args.adjust)
-    if args.middlebury or args.colmap:
-        res = model_from_image_set(args.out, opts, middlebury=args.middlebury, colmap=args.colmap, images=args.images)
-    else:
-        if args.capture is None:
-            raise SystemExit("vio model: error: give a CAPTURE, or --middlebury PAR / --colmap MODEL --images DIR")
-        res = model_capture(args.capture, args.run, args.out, opts, positions=args.positions)
+    try:
+        if args.middlebury or args.colmap:
+            res = model_from_image_set(
+                args.out, opts, middlebury=args.middlebury, colmap=args.colmap, images=args.images
+            )
+        else:
+            if args.capture is None:
+                raise SystemExit("vio model: error: give a CAPTURE, or --middlebury PAR / --colmap MODEL --images DIR")
+            res = model_capture(args.capture, args.run, args.out, opts, positions=args.positions)
+    except KeyboardInterrupt:
+        print(_interrupted(Path(args.out), args.run is None and not (args.middlebury or args.colmap)), file=sys.stderr)
+        return 130
     s = res.summary
     mesh = s["mesh"]
     print(
@@ -42,6 +51,28 @@ def _cmd_model(args: argparse.Namespace) -> int:
         f"{sum(s['timings_s'].values()):.1f} s"
     )
     return 0
+
+
+def _interrupted(out: Path, made_run: bool) -> str:
+    """The line `vio model` ends with on Ctrl-C: no model is kept (the files of one that was being written are
+    removed; model.json is written last), and whether the run it made in OUT/run is complete and can be reused."""
+    from vio.model.build import discard_model
+
+    if (out / "model.json").is_file():  # the interrupt came after the last file: the model is complete
+        return f"vio model: interrupted after the model was written; kept: the model in {out} (model.json)"
+    if out.is_dir():
+        discard_model(out)
+    line = f"vio model: interrupted; no model kept ({out} has no model.json)"
+    if not made_run:
+        return line
+    run = out / "run"
+    try:
+        status = json.loads((run / "run.json").read_text(encoding="utf-8")).get("status")
+    except (OSError, ValueError, AttributeError):
+        status = None
+    if status in ("ok", "degraded"):
+        return f"{line}; kept: the run in {run} ({status}), which --run {run} reuses"
+    return f"{line}; no run kept either" + (f" ({run}/run.json says {status})" if status else "")
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:

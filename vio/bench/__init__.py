@@ -87,6 +87,18 @@ def _keep_ground_truth(out: Path, case: Case, captures: str | None, res: dict[st
         write_bytes(target, source.read_bytes())
 
 
+REPORTS = ("results.json", "results.md")  # the suite's summary, written when every job is done
+
+
+def discard_reports(out: Path) -> None:
+    """Remove an earlier summary (and temporaries of an interrupted write) from `out` before a suite starts: until
+    this suite's own summary is written, none in `out` passes for it (the jobs' records stay, to resume from)."""
+    for name in REPORTS:
+        (out / name).unlink(missing_ok=True)
+        for tmp in out.glob(f".{name}.*.tmp"):
+            tmp.unlink(missing_ok=True)
+
+
 def _minutes(s: float) -> str:
     return f"{s / 60:.1f} min" if s >= 60 else f"{s:.0f} s"
 
@@ -109,6 +121,7 @@ def run_suite(
     from vio.bench.report import write_reports
 
     out = ensure_dir(out).resolve()
+    discard_reports(out)
     say = progress or log.info
     # method-major order: the first jobs to start are on different captures, which simulate in parallel
     order = [(ci, mi) for mi in range(len(suite.methods)) for ci in range(len(suite.cases))]

@@ -54,6 +54,18 @@ class ModelResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
+MODEL_FILES = ("model.json", "part.stl", "part.ply", "dense.ply")  # model.json last in, first out
+
+
+def discard_model(out: Path) -> None:
+    """Remove a model's files from `out`, model.json first (a folder without it holds no model, so a killed
+    `vio model` mixes nothing old with anything new), and the temporaries an interrupted write left."""
+    for name in MODEL_FILES:
+        (out / name).unlink(missing_ok=True)
+        for tmp in out.glob(f".{name}.*.tmp"):
+            tmp.unlink(missing_ok=True)
+
+
 def _timed(timings: dict[str, float], name: str, t0: float) -> float:
     now = time.perf_counter()
     timings[name] = round(now - t0, 3)
@@ -81,8 +93,7 @@ def model_from_views(
     from vio.writers import mesh as mesh_io
 
     out = ensure_dir(out)
-    for name in ("model.json", "part.stl", "part.ply", "dense.ply"):  # model.json last in, first out: a folder
-        (out / name).unlink(missing_ok=True)  # without it holds no model (a killed run mixes nothing old)
+    discard_model(out)
     timings: dict[str, float] = {}
     warnings: list[str] = []
     if (extra or {}).get("run_status") == "degraded":
@@ -196,6 +207,7 @@ def model_capture(
     from vio.trajio import read_trajectory
 
     out = ensure_dir(out)
+    discard_model(out)  # before the run it may make: a model killed during that run leaves no old model behind
     t0 = time.perf_counter()
     if run_dir is None:
         from vio.config import load_config
