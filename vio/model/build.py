@@ -26,8 +26,8 @@ from vio.model.records import Mesh, Roi, SupportPlane, View
 log = logging.getLogger(__name__)
 
 MAX_DEPTH_MAPS = 60  # reference views at most (every k-th still): 60 full-size maps with confidence are 1.4 GB
-SPARSE_MIN_HEIGHT_M = 8e-3  # from landmarks, the part is what stands this far above the support (measured: 3-5 mm
-# let table landmarks with mm-level errors bridge into one cluster with the part on the 20 s orbit)
+SPARSE_MIN_HEIGHT_M = 8e-3  # from landmarks, the part is what stands at least this far above the support, and
+# more where the table's landmarks scatter more (isolate.haze_height: 17-20 mm on 60 s orbits)
 
 
 @dataclass(frozen=True)
@@ -121,8 +121,10 @@ def model_from_views(
         if options.roi_world is None:
             raise
         warnings.append(f"no support plane ({exc}); the model's bottom is not closed")
-    # sparse landmarks scatter a few mm about the table: the part is the cluster standing clear of that
-    min_height = SPARSE_MIN_HEIGHT_M if sparse_from_run else 1e-3
+    # sparse landmarks scatter mm about the table: the part is what stands clear of that (3 robust sigmas of it)
+    min_height = 1e-3
+    if sparse_from_run and plane is not None:
+        min_height = max(SPARSE_MIN_HEIGHT_M, isolate.haze_height(plane, sparse_world))
     roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world, min_height)
     fuse.check_grid(roi, options.voxel_m)  # before the stereo: a region that swallowed the table fails now
     t0 = _timed(timings, "isolate", t0)
@@ -135,6 +137,11 @@ def model_from_views(
     step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))  # bounds memory: a 2016x1512 map is 24 MB
     maps = dense.depth_maps(views, roi, cfg, references=range(0, len(views), step))
     t0 = _timed(timings, "dense", t0)
+    refit = None
+    if plane is not None:  # the base closes on this plane: fitted again on the table's dense depth
+        plane, roi, refit = isolate.refine_plane(plane, roi, views, maps, rng)
+        if not refit["refined"]:
+            log.info("support plane kept from the landmarks: %s", refit["reason"])
     volume = fuse.fuse_depth_maps(views, maps, roi, voxel_m=options.voxel_m)
     points, colours = fuse.fused_points(views, maps, volume)
     t0 = _timed(timings, "fuse", t0)
@@ -158,7 +165,7 @@ def model_from_views(
         "dense_method": options.dense_method,
         "support_plane": None
         if plane is None
-        else {"normal": plane.normal.tolist(), "d_m": plane.d_m, "inlier_rms_m": plane.inlier_rms_m},
+        else {"normal": plane.normal.tolist(), "d_m": plane.d_m, "inlier_rms_m": plane.inlier_rms_m, "refit": refit},
         "world_T_support": roi.world_T_support.tolist(),
         "roi_support_m": {"lo": roi.lo.tolist(), "hi": roi.hi.tolist()},
         "mesh": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in checks.items()},

@@ -9,15 +9,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
-from scipy import sparse
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from vio.errors import ModelError
-from vio.model.records import Roi, SupportPlane, View
+from vio.model.records import DepthMap, Roi, SupportPlane, View
 
 log = logging.getLogger(__name__)
 
@@ -162,35 +161,36 @@ def _support_frame(plane: SupportPlane, origin_world: np.ndarray, x_dir: np.ndar
     return T
 
 
-def _clusters(p: np.ndarray, cell_m: float, min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """26-connected clusters of occupied cells: (cell keys (C, 3) int, cell label (C,), point -> cell (N,))."""
-    ijk = np.floor(p / cell_m).astype(np.int64)
-    cells, inverse, counts = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    occupied = counts >= min_points
-    remap = np.full(len(cells), -1)
-    remap[occupied] = np.arange(occupied.sum())
-    cells = cells[occupied]
-    span = cells.max(axis=0) - cells.min(axis=0) + 3
-    lo = cells.min(axis=0) - 1
+def _footprint(local: np.ndarray, cell_m: float, min_points: int, gap_cells: float = 3.0) -> np.ndarray:
+    """Mask of the points (N, 3) in a support frame whose origin lies under the part: the part standing there.
 
-    def key(c: np.ndarray) -> np.ndarray:
-        c = c - lo
-        return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+    Seen from above, a part's points crowd its footprint (a cube's top and its sides land on one square) while a
+    table's stray points are thin: cells of `cell_m` on the plane holding, with their 8 neighbours, at least
+    `min_points` points, 8-connected, the component nearest the origin. In height, the part is the lowest run of
+    its points without a gap wider than `gap_cells` cells (points floating above it are not the part)."""
+    ij = np.floor(local[:, :2] / cell_m).astype(np.int64)
+    lo = ij.min(axis=0)
+    ij -= lo
+    counts = np.zeros(tuple(ij.max(axis=0) + 1), np.float32)
+    np.add.at(counts, (ij[:, 0], ij[:, 1]), 1.0)
+    occupied = (cv2.boxFilter(counts, -1, (3, 3), normalize=False) >= min_points - 0.5).astype(np.uint8)
+    _, labels = cv2.connectedComponents(occupied, connectivity=8)
+    cells = np.argwhere(labels > 0)
+    if len(cells) == 0:
+        return np.zeros(len(local), bool)
+    nearest = cells[np.argmin(np.linalg.norm(cells + 0.5 + lo, axis=1))]
+    member = labels[ij[:, 0], ij[:, 1]] == labels[nearest[0], nearest[1]]
+    h = np.sort(local[member, 2])
+    gaps = np.flatnonzero(np.diff(h) > gap_cells * cell_m)
+    return member & (local[:, 2] <= (h[gaps[0]] if len(gaps) else h[-1]))
 
-    keys = key(cells)
-    order = np.argsort(keys)
-    rows, cols = [], []
-    for off in np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3):
-        nk = key(cells + off)
-        pos = np.clip(np.searchsorted(keys, nk, sorter=order), 0, len(keys) - 1)
-        hit = keys[order[pos]] == nk
-        rows.append(np.nonzero(hit)[0])
-        cols.append(order[pos[hit]])
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    graph = sparse.coo_matrix((np.ones(len(r), bool), (r, c)), shape=(len(cells), len(cells)))
-    labels = connected_components(graph, directed=False)[1]
-    return cells, labels, remap[inverse]
+
+def haze_height(plane: SupportPlane, points_world: np.ndarray, sigmas: float = 3.0, band_m: float = 0.05) -> float:
+    """`sigmas` robust standard deviations (1.4826 MAD) of the heights of the points within `band_m` of the plane,
+    m: how high a run's table landmarks scatter (6-7 mm on 60 s orbits, so that 3 sigmas is 17-20 mm)."""
+    h = plane.height(np.asarray(points_world, dtype=np.float64).reshape(-1, 3))
+    h = h[np.abs(h) < band_m]
+    return sigmas * 1.4826 * float(np.median(np.abs(h - np.median(h)))) if len(h) else 0.0
 
 
 def _footprint_angle(local: np.ndarray, neighbours: int = 12) -> float:
@@ -222,12 +222,17 @@ def region_of_interest(
     cell_m: float | None = None,
     min_points: int = 3,
 ) -> Roi:
-    """The box around the part in the support frame: the connected cluster of points above the plane nearest to
-    where the cameras look (`look_at_point`), its extent plus `margin_m` (below the plane too).
+    """The box around the part in the support frame: the points above the plane that crowd the footprint nearest to
+    where the cameras look (`look_at_point`), their extent plus `margin_m` (below the plane too).
 
-    The cluster: points from `min_height_m` up, in cells of `cell_m` holding >= `min_points` points, 26-connected
-    (cell_m None: 2.5 times the median distance to the `min_points`-th neighbour among the `_PROBE` points nearest
-    to the look-at point, at least 2 mm). `user_box` (2, 3) world min/max corners replaces the cluster (the support
+    The part: points from `min_height_m` up, their footprint on the plane in cells of `cell_m` (`_footprint`:
+    cells holding with their neighbours >= `min_points` points, the connected piece nearest the look-at point, the
+    lowest run of heights without a wide gap; cell_m None: 2.5 times the median distance on the plane to the
+    `min_points`-th neighbour among the `_PROBE` points nearest to the look-at point, at least 2 mm). A footprint,
+    not 3D clusters: a run's landmarks on a part's sides are sparse (in 3D, a cube fell apart into its faces and
+    the region took one side, seed 104 of the 60 s orbit), but seen from above they all land on the part.
+
+    `user_box` (2, 3) world min/max corners replaces the cluster (the support
     frame then has x along the world x; without a plane, it has the world's axes and its origin at the centre of
     the box's bottom). Raises ModelError when no part is found, or without both a plane and a user box.
     """
@@ -249,34 +254,113 @@ def region_of_interest(
     above = pts[plane.height(pts) >= min_height_m]
     if len(above) < _MIN_POINTS:
         raise ModelError(f"no part found: only {len(above)} points stand {1e3 * min_height_m:g} mm above the plane")
-    if cell_m is None:  # cells that hold min_points points of the part's surface: 2.5 x the k-th neighbour distance
-        near_target = np.linalg.norm(above - target, axis=1)  # among the points nearest the look-at point, few
-        probe = above[np.argpartition(near_target, min(_PROBE, len(above) - 1))[:_PROBE]]  # enough to be the part
-        knn = cKDTree(above).query(probe, k=min_points + 1)[0][:, -1]
-        cell_m = float(max(2.5 * np.median(knn), 2e-3))
-    cells, labels, point_cell = _clusters(above, cell_m, min_points)
-    if len(cells) == 0:
-        raise ModelError("no part found: the points above the plane are too sparse to form a cluster")
-    centres = (cells + 0.5) * cell_m
-    dist = np.linalg.norm(centres - target, axis=1)
-    label = labels[int(np.argmin(dist))]
-    member = labels[np.maximum(point_cell, 0)] == label
-    part = above[member & (point_cell >= 0)]
     T0 = _support_frame(plane, target, np.array([1.0, 0.0, 0.0]))  # any in-plane x first
-    local0 = (part - T0[:3, 3]) @ T0[:3, :3]
+    above = (above - T0[:3, 3]) @ T0[:3, :3]
+    if cell_m is None:  # footprint cells that hold min_points points: 2.5 x the k-th neighbour distance on the plane
+        near_target = np.linalg.norm(above[:, :2], axis=1)  # among the points nearest the look-at point, few
+        probe = above[np.argpartition(near_target, min(_PROBE, len(above) - 1))[:_PROBE]]  # enough to be the part
+        knn = cKDTree(above[:, :2]).query(probe[:, :2], k=min_points + 1)[0][:, -1]
+        cell_m = float(max(2.5 * np.median(knn), 2e-3))
+    local0 = above[_footprint(above, cell_m, min_points)]
+    if len(local0) < min_points:
+        raise ModelError("no part found: the points above the plane are too sparse to form a cluster")
     a = _footprint_angle(local0)
     xy = local0[:, :2] @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     if np.ptp(xy[:, 1]) > np.ptp(xy[:, 0]):  # x along the longer side
         a += 0.5 * np.pi
     T = _support_frame(plane, target, T0[:3, :3] @ np.array([np.cos(a), np.sin(a), 0.0]))
-    local = (part - T[:3, 3]) @ T[:3, :3]
+    local = (local0 @ T0[:3, :3].T + T0[:3, 3] - T[:3, 3]) @ T[:3, :3]
     lo, hi = local.min(axis=0) - margin_m, local.max(axis=0) + margin_m
     lo[2] = -margin_m
     log.info(
         "region of interest: %d of %d points above the plane (cells %.1f mm), %.1f x %.1f x %.1f mm with margins",
-        len(part),
+        len(local0),
         len(above),
         1e3 * cell_m,
         *(1e3 * (hi - lo)),
     )
     return Roi(T, lo, hi)
+
+
+def refine_plane(
+    plane: SupportPlane,
+    roi: Roi,
+    views: Sequence[View],
+    maps: Sequence[DepthMap],
+    rng: np.random.Generator,
+    per_map: int = 50_000,
+    band_m: float = 4e-3,
+    clear_m: float = 3e-3,
+    max_shift_m: float = 5e-3,
+    max_tilt_deg: float = 2.0,
+) -> tuple[SupportPlane, Roi, dict[str, Any]]:
+    """The support plane refitted on the dense depth of the table around the part, and the ROI re-based on it.
+
+    The plane found before the stereo comes from a run's landmarks, which scatter several mm about a table seen
+    at an angle (7.5 mm on 60 s orbits); the part's base closes on this plane, so its error goes straight into
+    the part's height. Here the table is the depth points within `band_m` of the plane inside the ROI (its margin
+    around the part), except where the part stands: 1 mm footprint cells holding points from `clear_m` up,
+    grown by `clear_m`. Fitted by least squares, trimmed at 3 robust scales (3 rounds). Refused (the old plane
+    kept, the reason in the report) when fewer than 2000 table points surround the part on fewer than 3 of 4
+    sides, or the fit moves the plane more than `max_shift_m` under the part or tilts it more than
+    `max_tilt_deg`. Returns (plane, roi, report for model.json)."""
+    T = roi.world_T_support
+    local = []
+    for dm in maps:
+        v = views[dm.view]
+        vv, uu = np.nonzero(np.isfinite(dm.depth_m))
+        if len(vv) > per_map:
+            keep = rng.choice(len(vv), per_map, replace=False)
+            vv, uu = vv[keep], uu[keep]
+        z = dm.depth_m[vv, uu].astype(np.float64)
+        cam = np.linalg.solve(v.K, np.stack([uu * z, vv * z, z]))
+        world = cam.T @ v.world_T_cam[:3, :3].T + v.world_T_cam[:3, 3]
+        local.append((world - T[:3, 3]) @ T[:3, :3])
+    p = np.concatenate(local) if local else np.zeros((0, 3))
+    p = p[((p >= roi.lo) & (p <= roi.hi)).all(axis=1)]
+    report: dict[str, Any] = {"refined": False}
+    if len(p) == 0:
+        report["reason"] = "no depth inside the region of interest"
+        return plane, roi, report
+    cell = 1e-3
+    ij = np.floor((p[:, :2] - roi.lo[:2]) / cell).astype(np.int64)
+    shape = tuple(np.floor((roi.hi[:2] - roi.lo[:2]) / cell).astype(int) + 1)
+    part = np.zeros(shape, np.uint8)
+    up = p[:, 2] >= clear_m
+    part[ij[up, 0], ij[up, 1]] = 1
+    grow = 2 * int(np.ceil(clear_m / cell)) + 1
+    part = cv2.dilate(part, np.ones((grow, grow), np.uint8))
+    table = p[(np.abs(p[:, 2]) < band_m) & (part[ij[:, 0], ij[:, 1]] == 0)]
+    centre = p[up, :2].mean(axis=0) if up.any() else 0.5 * (roi.lo[:2] + roi.hi[:2])
+    angle = np.arctan2(table[:, 1] - centre[1], table[:, 0] - centre[0])
+    sides = len(np.unique(np.floor((angle + np.pi) / (0.5 * np.pi)).astype(int) % 4))
+    report.update(table_points=int(len(table)), sides=sides)
+    if len(table) < 2000 or sides < 3:
+        report["reason"] = f"{len(table)} table points around the part, on {sides} of 4 sides"
+        return plane, roi, report
+    inl = np.ones(len(table), bool)
+    for _ in range(3):  # least squares on the inliers, then inliers within 3 robust scales of the median
+        c = table[inl].mean(axis=0)
+        n = np.linalg.svd(table[inl] - c, full_matrices=False)[2][2]
+        n = n if n[2] > 0 else -n
+        r = (table - c) @ n
+        mid = float(np.median(r[inl]))
+        inl = np.abs(r - mid) < max(3.0 * 1.4826 * float(np.median(np.abs(r[inl] - mid))), 1e-4)
+    under = 0.5 * (roi.lo[:2] + roi.hi[:2])  # the new plane's height under the part, in the old support frame
+    lift = float(c[2] - (n[:2] @ (under - c[:2])) / n[2])
+    tilt = float(np.degrees(np.arccos(min(1.0, float(n[2])))))
+    rms = float(np.std(r[inl]))
+    report.update(lift_mm=round(1e3 * lift, 4), tilt_deg=round(tilt, 4), rms_mm=round(1e3 * rms, 4))
+    if abs(lift) > max_shift_m or tilt > max_tilt_deg:
+        report["reason"] = f"the table's depth moved the plane {1e3 * lift:+.1f} mm and {tilt:.2f} deg: not taken"
+        return plane, roi, report
+    normal = T[:3, :3] @ n
+    new = SupportPlane(normal=normal, d_m=float(normal @ (T[:3, :3] @ c + T[:3, 3])), inlier_rms_m=rms)
+    report["refined"] = True
+    log.info(
+        "support plane refitted on %d table depth points around the part: %+.3f mm under it, tilted %.3f deg",
+        int(inl.sum()),
+        1e3 * lift,
+        tilt,
+    )
+    return new, Roi(_support_frame(new, T[:3, 3], T[:3, 0]), roi.lo.copy(), roi.hi.copy()), report

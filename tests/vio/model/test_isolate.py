@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 
 from vio.errors import ModelError
-from vio.model.isolate import look_at_point, region_of_interest, support_plane, support_plane_from_depth
-from vio.model.records import SupportPlane, View
+from vio.model.isolate import (
+    look_at_point,
+    refine_plane,
+    region_of_interest,
+    support_plane,
+    support_plane_from_depth,
+)
+from vio.model.records import DepthMap, SupportPlane, View
 
 NORMAL = np.array([0.08, -0.15, 1.0]) / np.linalg.norm([0.08, -0.15, 1.0])
 OFFSET_M = 0.05
@@ -187,3 +193,55 @@ def test_roi_ignores_a_haze_of_table_landmarks():
     roi = region_of_interest(plane, views, points, margin_m=0.01, min_height_m=8e-3)
     size = roi.hi - roi.lo
     assert (size[:2] > SIDE_M).all() and (size[:2] < SIDE_M + 0.05).all(), size
+
+
+def _depth_of_cube_on_table(views: list[View], half: float, table: bool = True) -> list[DepthMap]:
+    """Exact z-depth maps of a cube (half side `half` m, base on z = 0, centred on the z axis) on the table z = 0."""
+    maps = []
+    for k, v in enumerate(views):
+        w, h = v.size
+        uu, vv = np.meshgrid(np.arange(w) + 0.0, np.arange(h) + 0.0)
+        rays = np.linalg.solve(v.K, np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)])).T @ v.world_T_cam[:3, :3].T
+        o = v.world_T_cam[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_table = np.where(rays[:, 2] < 0, -o[2] / rays[:, 2], np.inf) if table else np.full(len(rays), np.inf)
+            lo, hi = np.array([-half, -half, 0.0]), np.array([half, half, 2 * half])
+            t1, t2 = (lo - o) / rays, (hi - o) / rays
+            near, far = np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
+        t = np.minimum(t_table, np.where((far >= near) & (near > 0), near, np.inf))  # ray = K^-1 [u v 1]: t is z
+        maps.append(DepthMap(k, np.where(np.isfinite(t), t, np.nan).reshape(h, w).astype(np.float32)))
+    return maps
+
+
+def test_refine_plane_fits_the_table_around_the_part():
+    """The landmarks' plane 1.5 mm high and tilted 0.3 deg; the table's dense depth around the cube puts it back."""
+    half = 0.5 * SIDE_M
+    views = []
+    for k in range(8):
+        az, e = 2 * np.pi * k / 8, np.radians(40.0)
+        centre = 0.3 * np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
+        z = (np.array([0.0, 0.0, half]) - centre) / np.linalg.norm(np.array([0.0, 0.0, half]) - centre)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = np.column_stack([x, np.cross(z, x), z]), centre
+        views.append(
+            View(str(k), np.zeros((240, 320), np.uint8), np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), T)
+        )
+    tilt = np.radians(0.3)
+    wrong = SupportPlane(np.array([np.sin(tilt), 0.0, np.cos(tilt)]), 1.5e-3, 1e-3)
+    roi = region_of_interest(
+        wrong, views, np.zeros((0, 3)), user_box=np.array([[-0.048, -0.048, -0.01], [0.048, 0.048, 0.09]])
+    )
+    plane, rebased, report = refine_plane(
+        wrong, roi, views, _depth_of_cube_on_table(views, half), np.random.default_rng(0)
+    )
+    assert report["refined"] and report["sides"] == 4, report
+    assert report["lift_mm"] == pytest.approx(-1.5, abs=0.05)
+    np.testing.assert_allclose(plane.normal, [0.0, 0.0, 1.0], atol=1e-5)
+    assert plane.d_m == pytest.approx(0.0, abs=2e-5)
+    assert abs(rebased.world_T_support[2, 3]) < 2e-5 and rebased.world_T_support[2, 2] == pytest.approx(1.0)
+    kept, same, why = refine_plane(
+        wrong, roi, views, _depth_of_cube_on_table(views, half, table=False), np.random.default_rng(0)
+    )
+    assert kept is wrong and same is roi and not why["refined"] and "table points" in why["reason"]
