@@ -7,6 +7,7 @@ after that the solver is half-updated and must be rebuilt (`Smoother.reset()`), 
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import gtsam
@@ -80,6 +81,8 @@ class Smoother:
     ) -> gtsam.Values:
         """Add factors and new variables; timestamps (s) are used by the fixed-lag smoother only. Returns the last
         estimate of the variables that this update marginalised (fixed lag; always empty for iSAM2)."""
+        if self.kind == "fixed_lag" and self.cfg.marginalise_every_s > 0:
+            timestamps = {key: self._block(t) for key, t in timestamps.items()}
         leaving = self._leaving(timestamps)
         try:
             retired = self.estimate_keys([key for key in leaving if key in self._keys])
@@ -97,6 +100,12 @@ class Smoother:
         for key in leaving:
             del self._stamps[key]
         return retired
+
+    def _block(self, t_s: float) -> float:
+        """A timestamp rounded down to its block of `marginalise_every_s`: variables then leave the window in whole
+        blocks, once per block, and the updates in between are plain iSAM2 updates (no ordering constraint)."""
+        block = self.cfg.marginalise_every_s
+        return math.floor(t_s / block) * block
 
     def _leaving(self, timestamps: dict[int, float]) -> list[int]:
         """Keys the fixed-lag smoother marginalises in an update with these new timestamps: the same rule as

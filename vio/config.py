@@ -71,6 +71,7 @@ class SmootherConfig:
     kind: str = "isam2"  # isam2 | fixed_lag
     lag_s: float = 3.0  # fixed-lag window when kind == fixed_lag, s
     map_sigma_m: float = 0.01  # fixed lag: prior on an old landmark that is seen again, at its kept position, m
+    marginalise_every_s: float = 0.0  # fixed lag: variables leave in blocks of this length, s (0: at every update)
     relinearize_threshold: float = 0.01  # iSAM2 relinearisation threshold (tangent-space norm)
     relinearize_skip: int = 10  # relinearize every 10th update (measured: 2x less CPU, same accuracy)
     factorization: str = "CHOLESKY"  # iSAM2: CHOLESKY (25% faster) | QR (survives long IMU-only stretches)

@@ -52,6 +52,24 @@ def test_smoother_predicts_the_variables_it_marginalises():
     assert sm.num_variables() == 3
 
 
+def test_marginalise_in_blocks():
+    """With `marginalise_every_s` the variables leave in whole blocks, not at every update."""
+    sm = Smoother(SmootherConfig(kind="fixed_lag", lag_s=1.0, marginalise_every_s=1.0))
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    X = gtsam.symbol_shorthand.X
+    sizes = []
+    for k in range(40):  # keyframes 0.1 s apart
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        prev = gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise) if k == 0 else None
+        graph.add(prev or gtsam.BetweenFactorPose3(X(k - 1), X(k), gtsam.Pose3(), noise))
+        values.insert(X(k), gtsam.Pose3())
+        left = sm.update(graph, values, {X(k): 100.0 + 0.1 * k + 1e-6})
+        assert left.size() in (0, 10)  # nothing, or one whole second of keyframes
+        sizes.append(sm.num_variables())
+    assert set(sm.estimate().keys()) == {X(k) for k in range(20, 40)}  # between one lag and one lag + a block
+    assert max(sizes) == 20
+
+
 def test_fixed_lag_is_accurate_on_a_short_capture(data):
     est = run_estimator(data, _fixed_lag())
     stats = est.stats()

@@ -46,7 +46,8 @@ class MemorySampler:
 
     def __init__(self) -> None:
         self.t_capture_s = 0.0  # capture time of the frame being read, s from the first frame
-        self.samples: list[tuple[float, float]] = []
+        self.after_last = False  # the last frame was read: what follows is the run's end (final solve, files)
+        self.samples: list[tuple[float, float, bool]] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
@@ -57,11 +58,11 @@ class MemorySampler:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join()
-        self.samples.append((self.t_capture_s, rss_mib()))
+        self.samples.append((self.t_capture_s, rss_mib(), True))
 
     def _loop(self) -> None:
         while not self._stop.wait(SAMPLE_S):
-            self.samples.append((self.t_capture_s, rss_mib()))
+            self.samples.append((self.t_capture_s, rss_mib(), self.after_last))
 
 
 def per_minute(t_s: np.ndarray, values: np.ndarray, minute_s: float = 60.0) -> list[dict[str, float]]:
@@ -90,9 +91,11 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
     load_image = cap.load_image
     load_start = os.getloadavg()
     with MemorySampler() as sampler:
+        last = cap.num_frames - 1 if cfg.run.max_frames <= 0 else min(cap.num_frames, cfg.run.max_frames) - 1
 
         def tagged(i: int) -> np.ndarray:
             sampler.t_capture_s = (int(cap.frame_t_ns[i]) - t0_ns) * 1e-9
+            sampler.after_last = i >= last
             return load_image(i)
 
         cap.load_image = tagged
@@ -103,7 +106,8 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
     steps = np.asarray(stats.keyframe_ms[1:], float)  # the first entry is the whole start window
     kf_t = np.sort(np.array([t for _, t, _ in stats.keyframe_projections], np.int64))
     t_s = (kf_t[len(kf_t) - len(steps) :] - t0_ns) * 1e-9
-    mem = np.asarray(sampler.samples, float).reshape(-1, 2)
+    samples = np.asarray(sampler.samples, float).reshape(-1, 3)
+    mem, end = samples[samples[:, 2] == 0, :2], samples[samples[:, 2] == 1, 1]
     minutes = per_minute(t_s, steps)
     cpu = per_minute(t_s, np.asarray(stats.step_cpu_ms, float))
     for row, row_cpu in zip(minutes, cpu, strict=True):
@@ -122,6 +126,7 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "realtime_factor": result.summary["span_s"] / wall_s,
         "cpu_s": result.summary["cpu_time_s"],
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "end_rss_peak_mib": float(end.max()) if end.size else float("nan"),  # from the last frame read to the end
         "load_average_start": load_start[0],
         "load_average_end": os.getloadavg()[0],
         "keyframes": int(steps.size),
@@ -132,7 +137,8 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "keyframe_t_s": t_s.round(3).tolist(),
         "keyframe_ms": steps.round(2).tolist(),
         "keyframe_cpu_ms": np.round(stats.step_cpu_ms, 2).tolist(),
-        "memory": mem.round(2).tolist(),
+        "memory": mem.round(2).tolist(),  # (capture time s, resident MiB) while the frames are read
+        "end_memory": samples[samples[:, 2] == 1, :2].round(2).tolist(),  # the same after the last frame
     }
     if cap.ground_truth is not None:
         record["ate_se3_m"], record["scale"] = _ate(cap, out / "run" / "trajectory.tum")
@@ -166,7 +172,10 @@ def plot(record: dict[str, Any], path: Path, label: str) -> None:
     ax1.legend(loc="upper left")
     ax1.set_title(label)
     mem = np.asarray(record["memory"]).reshape(-1, 2)
-    ax2.plot(mem[:, 0], mem[:, 1])
+    ax2.plot(mem[:, 0], mem[:, 1], label="while frames are read")
+    if record.get("end_memory"):
+        ax2.plot(*np.asarray(record["end_memory"]).T, "r.", ms=3, label="after the last frame (final solve, files)")
+    ax2.legend(loc="upper left")
     ax2.set_ylabel("resident memory, MiB")
     ax2.set_xlabel("capture time, s")
     for ax in (ax1, ax2):
@@ -198,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     ate = f", ATE {1e3 * record['ate_se3_m']:.2f} mm" if "ate_se3_m" in record else ""
     print(
         f"wall {record['wall_s']:.0f} s ({record['realtime_factor']:.2f}x real time), peak RSS "
-        f"{record['peak_rss_mib']:.0f} MiB, load {record['load_average_start']:.1f}-{record['load_average_end']:.1f}"
-        f"{ate}"
+        f"{record['peak_rss_mib']:.0f} MiB (after the last frame {record['end_rss_peak_mib']:.0f}), load "
+        f"{record['load_average_start']:.1f}-{record['load_average_end']:.1f}{ate}"
     )
     return 0
 
