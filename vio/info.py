@@ -119,14 +119,18 @@ def describe(cap: Capture, offset: bool = True, problems: Sequence[str] = ()) ->
     return lines
 
 
-def capture_info(path: str | os.PathLike[str], calib: str | os.PathLike[str] | None = None) -> str:
-    """A human-readable summary of a capture. Every error that would stop `vio run` is listed, not raised (an ASL
+def capture_info(path: str | os.PathLike[str], calib: str | os.PathLike[str] | None = None, offset: bool = True) -> str:
+    """A human-readable summary of a capture. Every error that would stop `vio run` is listed, not raised (a
     stream that cannot be read is left out and its error listed), except when the capture cannot be read at all
-    (then the error propagates: one line on the command line)."""
+    (then the error propagates: one line on the command line). `offset`: estimate the camera-IMU time offset."""
     from vio.readers import read_capture
+    from vio.readers.common import unreadable
     from vio.readers.validate import finish_capture
 
     problems: list[str] = []
-    cap = read_capture(Path(path), calib, problems)
+    try:
+        cap = read_capture(Path(path), calib, problems)
+    except OSError as exc:  # not one stream: the capture itself (e.g. a symbolic-link loop), as open_capture says
+        raise unreadable(exc, path) from None
     problems += finish_capture(cap, Path(path), strict=False)
-    return "\n".join(describe(cap, problems=problems))
+    return "\n".join(describe(cap, offset=offset, problems=problems))

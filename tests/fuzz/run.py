@@ -4,8 +4,9 @@ Run as a program (the test runs it in a child process under a memory limit):
     python -m tests.fuzz.run SANDBOX --examples N [--json OUT]
 It writes the seed captures under SANDBOX/seeds, replays the checked-in corpus (`corpus.json`), then lets hypothesis
 (fixed seed: derandomized, no example database) draw N cases. Each case is a seed copied to SANDBOX/case with 1-3
-mutations (tests/fuzz/mutations.py), then: `open_capture`, every frame's image loaded (a frame that does not decode
-is skipped, as `vio run` does), and `vio info`'s description.
+mutations (tests/fuzz/mutations.py), then: `vio info` (`capture_info`: each stream read on its own, every problem
+listed), `open_capture`, every frame's image loaded (a frame that does not decode is skipped, as `vio run` does), and
+`vio info`'s description of what opened.
 
 Outcome classes: `error` (a VioError: one line, no newline), `warning` (opened, with warnings or skipped frames),
 `success`. Anything else is a finding: `traceback` (any other exception, or an error message of several lines),
@@ -68,17 +69,34 @@ def _snapshot(root: Path, skip: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
-def read_like_vio(path: Path) -> str:
-    """Open, load every frame, describe; the outcome class (raises for a finding)."""
+def _one_line(exc: Exception) -> None:
+    if "\n" in str(exc) or not str(exc).strip():
+        raise AssertionError(f"error message is not one line: {str(exc)!r}") from None
+
+
+def read_like_vio(path: Path, info: Counter[str] | None = None) -> str:
+    """`vio info` (every problem listed, streams read separately), then as `vio run` reads it: open, load every
+    frame, describe. The outcome class is the latter's (raises for a finding); `info` counts vio info's outcomes
+    (`error`: the capture cannot be read at all; `no problem`, `one problem`, `several problems` listed)."""
     from vio.errors import CaptureError, VioError
-    from vio.info import describe
+    from vio.info import capture_info, describe
     from vio.readers import open_capture
 
     try:
+        text = capture_info(path, offset=False)
+    except VioError as exc:  # a capture that cannot be read at all
+        _one_line(exc)
+        kind = "error"
+    else:
+        listed = [line for line in text.splitlines() if line.startswith("problems: ")]
+        n = int(listed[0].split()[1]) if listed else 0
+        kind = "no problem" if n == 0 else "one problem" if n == 1 else "several problems"
+    if info is not None:
+        info[kind] += 1
+    try:
         cap = open_capture(path)
     except VioError as exc:
-        if "\n" in str(exc) or not str(exc).strip():
-            raise AssertionError(f"error message is not one line: {str(exc)!r}") from None
+        _one_line(exc)
         return "error"
     skipped = 0
     if cap.tracks is None:
@@ -97,6 +115,7 @@ class Fuzzer:
         self.seeds = write_seeds(sandbox / "seeds")
         self.case = sandbox / "case"
         self.outcomes: Counter[str] = Counter()
+        self.info_outcomes: Counter[str] = Counter()
         self.findings: list[dict] = []
         self.slowest_s = 0.0
 
@@ -114,7 +133,7 @@ class Fuzzer:
         signal.signal(signal.SIGALRM, _alarm)
         signal.setitimer(signal.ITIMER_REAL, CASE_LIMIT_S)
         try:
-            outcome = read_like_vio(target)
+            outcome = read_like_vio(target, self.info_outcomes)
         except Hang:
             outcome = "hang"
         except BaseException as exc:  # noqa: BLE001 - every other exception is a finding
@@ -163,6 +182,7 @@ def run(sandbox: Path, examples: int) -> dict:
         "cases": n,
         "corpus_cases": len(corpus),
         "outcomes": dict(fz.outcomes),
+        "info_outcomes": dict(fz.info_outcomes),
         "findings": fz.findings,
         "slowest_case_s": round(fz.slowest_s, 2),
         "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),

@@ -39,7 +39,11 @@ def test_fuzzed_captures_end_in_a_clear_line(tmp_path):
     assert set(outcomes) <= {"error", "warning", "success"}
     assert report["cases"] == EXAMPLES + report["corpus_cases"] and report["corpus_cases"] >= 50
     assert min(outcomes.get(k, 0) for k in ("error", "warning", "success")) > 20  # the mutations reach every class
-    print(json.dumps({k: report[k] for k in ("cases", "outcomes", "slowest_case_s", "max_rss_mb")}))
+    info = report["info_outcomes"]  # vio info on the same cases: one line, or every problem listed
+    assert set(info) <= {"error", "no problem", "one problem", "several problems"}
+    assert sum(info.values()) == report["cases"] and info.get("several problems", 0) > 0
+    keys = ("cases", "outcomes", "info_outcomes", "slowest_case_s", "max_rss_mb")
+    print(json.dumps({k: report[k] for k in keys}))
 
 
 RUN_CASES = (  # corpus entries run through the whole of `vio run` (the CLI), by their `what`

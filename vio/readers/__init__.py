@@ -118,6 +118,7 @@ def open_capture(
     `needs` names the streams the caller uses ("camera", "imu"): the checks of a stream it does not need are skipped
     (`vio track` needs the camera only, the IMU-only baseline the IMU only, scoring against ground truth neither).
     """
+    from vio.readers.common import unreadable
     from vio.readers.validate import finish_capture
 
     topics = {k: v for k, v in (("image_topic", image_topic), ("imu_topic", imu_topic)) if v}
@@ -125,7 +126,7 @@ def open_capture(
     try:
         cap = read_capture(path, calib, problems, **topics)
     except OSError as exc:  # e.g. a symbolic link loop, a file that cannot be read: one line naming it
-        raise CaptureError(f"cannot be read ({exc.strerror or exc})", exc.filename or path) from None
+        raise unreadable(exc, path) from None
     for msg in [*(problems or []), *finish_capture(cap, Path(path), strict=strict, needs=needs)]:
         cap.warn(msg)
     return cap

@@ -26,14 +26,22 @@ FRAME_GAP_FACTOR = 2.5  # a frame interval longer than this many nominal interva
 
 def collect(read: Callable[[], T], default: T, problems: list[str] | None) -> T:
     """One stream of a capture: its reader's error raises, or (when collecting `problems`, as `vio info` does) is
-    appended there and `default` returned, so that every unreadable stream is reported, not only the first."""
+    appended there and `default` returned, so that every unreadable stream is reported, not only the first (a
+    file the system cannot read, such as a symbolic-link loop, in the words `open_capture` uses for it)."""
     if problems is None:
         return read()
     try:
         return read()
     except VioError as exc:
         problems.append(str(exc))
-        return default
+    except OSError as exc:
+        problems.append(str(unreadable(exc, "")))
+    return default
+
+
+def unreadable(exc: OSError, path: object) -> CaptureError:
+    """A file the system cannot read (a symbolic-link loop, no permission) as one line naming it."""
+    return CaptureError(f"cannot be read ({exc.strerror or exc})", exc.filename or path)
 
 
 def no_frames(source: Path, why: str) -> Callable[[int], np.ndarray]:
