@@ -3,8 +3,9 @@ with feature tracks) and the camera's intrinsics in; Kalibr's camchain-imu YAML 
 
 The camchain (`--out`) is the given one with the calibrated `T_cam_imu` and `timeshift_cam_imu`; beside it goes
 `camera_imu_calibration.json` (every figure with its standard deviation, the excitation verdicts and the rotation
-step's own estimate). Both are written atomically; `vio run --calib` reads the camchain (IMU noise from an `imu0:`
-section or an IMU YAML beside it, as for every camchain). The board: `--board`, else the `board_spec` that
+step's own estimate) and `camera_imu_alignment.png` (the speeds' cross-correlation and the aligned speeds). All are
+written atomically; `vio run --calib` reads the camchain (IMU noise from an `imu0:` section or an IMU YAML beside
+it, as for every camchain). The board: `--board`, else the `board_spec` that
 `vio calibrate camera` stored in `camera_calibration.json` beside `--calib`; without a board, a capture with feature
 tracks (gtsam's eqvio file) gives the rotation and time offset. Without `--calib` the capture's own camera
 calibration is used (its intrinsics; its camera-IMU extrinsic only for the translation when there is no board).
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vio.atomic import write_json, write_text
+from vio.atomic import write_bytes, write_json, write_text
 from vio.calibrate.board import parse_board
 from vio.calibrate.camera_imu import (
     CameraImuCalibration,
@@ -139,4 +140,8 @@ def calibrate_camera_imu_files(
     write_text(out, camchain_yaml_text(camera, comment=note, timeshift_s=res.timeshift_ns * 1e-9))
     report = out.parent / "camera_imu_calibration.json"
     write_json(report, {"capture": str(capture), "calib": str(calib), "imu_noise": source, **res.summary()})
-    return summary_text(res, source) + f"\nwrote {out}, {report.name}"
+    from vio.calibrate.camera_imu_figures import alignment_png
+
+    picture = out.parent / "camera_imu_alignment.png"
+    write_bytes(picture, alignment_png(res, cap.imu, read_shift_ns))
+    return summary_text(res, source) + f"\nwrote {out}, {report.name}, {picture.name}"

@@ -60,6 +60,9 @@ class RotationAlignment:
     residual_rms_rad: float  # RMS of the pairs' rotation residuals, rad
     pairs: int  # pairs in the refinement
     axis_turn_rad: np.ndarray  # (3,) RMS turn of the pairs about the principal axes (smallest first), rad
+    xcorr_offsets_ns: np.ndarray  # (D,) the offsets the cross-correlation tried, ns
+    xcorr: np.ndarray  # (D,) the correlation at each
+    steps: CameraTurns  # the camera's turns between consecutive frames (the cross-correlation's input)
 
 
 def turns_from_poses(t_ns: np.ndarray, world_R_cam: Rotation, span_s: float, max_gap_s: float) -> CameraTurns:
@@ -157,7 +160,7 @@ def align_rotation(
     `turns` those between frames about PAIR_SPAN_S apart (steps 2 and 3)."""
     gyro = GyroIntegral(imu)
     check_rotation(gyro, (gyro.span_ns[1] - gyro.span_ns[0]) * 1e-9)
-    offset0, corr, _, _ = xcorr_offset(steps, gyro, max_offset_s)
+    offset0, corr, tried_ns, corr_curve = xcorr_offset(steps, gyro, max_offset_s)
     lo, hi = gyro.span_ns
     margin = 0.05e9 + abs(offset0)
     keep = (turns.t0_ns - margin >= lo) & (turns.t1_ns + margin <= hi)
@@ -188,4 +191,7 @@ def align_rotation(
         residual_rms_rad=float(np.sqrt(np.mean(r**2) * 3)),
         pairs=len(a),
         axis_turn_rad=axis_turn,
+        xcorr_offsets_ns=tried_ns,
+        xcorr=corr_curve,
+        steps=steps,
     )

@@ -129,6 +129,7 @@ def test_camera_imu_known_answer(calibrated, name):
     if report is not None:  # the last run's report: every figure with its sigma, all excited by the brisk motion
         assert report["excited"] == {"rotation": True, "translation": True, "time_offset": True}
         assert max(report["translation_std_m"]) < 0.0025 and report["timeshift_std_s"] < 0.5e-3
+        assert (calib / "camera_imu_alignment.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "WEAKLY" not in stdout and "timeshift_cam_imu" in stdout
 
 
