@@ -5,7 +5,7 @@ Shared by `vio.bench.report` (results.md) and `vio.bench.plots` (figures), so bo
 
 from __future__ import annotations
 
-METHOD_ORDER = ("vio", "batch", "vio_lag3s", "vision_only", "imu_only")
+METHOD_ORDER = ("vio", "batch", "vio_fixed_lag", "vision_only", "imu_only")
 
 
 def method_rank(method: str) -> tuple[int, str]:

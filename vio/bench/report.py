@@ -149,7 +149,7 @@ def markdown(rows: list[dict[str, Any]], title: str = "", wall_s: float | None =
         "Median ATE over all captures (SE3; vision_only Sim3): "
         + ", ".join(f"{m} {_fmt(v, 'ate_')}" for m, v in meds.items()),
     ]
-    for num in ("vio", "vio_lag3s"):
+    for num in ("vio", "vio_fixed_lag"):
         ratio = paired_ratio(rows, num, "batch")
         if ratio is not None:
             lines.append(f"Median over captures of ATE({num}) / ATE(batch): {ratio:.2f}")

@@ -88,7 +88,7 @@ IMU_ONLY = Method("imu_only", "imu_only")
 VIO_AND_BATCH = Method("vio", "vio", refine=True)
 VIO = Method("vio", "vio")
 VISION_ONLY = Method("vision_only", "vision_only", presets=("vision_only",))
-FIXED_LAG = Method("vio_lag3s", "vio", presets=("fixed_lag",))
+FIXED_LAG = Method("vio_fixed_lag", "vio", presets=("fixed_lag",))
 # The part chain (run, model, measure, compare); with positions: known body positions at 2 Hz, 0.1 mm per axis.
 MODEL = Method("model", "model")
 MODEL_POSITIONS = Method("model_positions", "model", positions_sigma_m=1e-4)

@@ -66,7 +66,7 @@ def test_suite_methods_name_presets_that_exist():
     assert load_config(None, list(methods["vision_only"].overrides), methods["vision_only"].presets).estimator.mode == (
         "vision_only"
     )
-    assert load_config(None, [], methods["vio_lag3s"].presets).smoother.kind == "fixed_lag"
+    assert load_config(None, [], methods["vio_fixed_lag"].presets).smoother.kind == "fixed_lag"
     assert all(not m.overrides for m in methods.values())
 
 
