@@ -1,0 +1,22 @@
+"""The per-minute latency table of `vio.bench.cost_over_time`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vio.bench.cost_over_time import per_minute, rss_mib
+
+
+def test_per_minute_splits_keyframes_by_capture_time():
+    t_s = np.array([0.0, 30.0, 59.9, 60.0, 61.0, 150.0])
+    ms = np.array([10.0, 20.0, 30.0, 100.0, 200.0, 5.0])
+    rows = per_minute(t_s, ms)
+    assert [r["minute"] for r in rows] == [1, 2, 3]
+    assert [r["keyframes"] for r in rows] == [3, 2, 1]
+    assert rows[0]["p50"] == 20.0 and rows[0]["max"] == 30.0
+    assert rows[1]["max"] == 200.0 and 100.0 < rows[1]["p95"] < rows[1]["p99"] <= 200.0
+    assert per_minute(np.zeros(0), np.zeros(0)) == []
+
+
+def test_rss_is_this_process():
+    assert 10.0 < rss_mib() < 100_000.0
