@@ -169,6 +169,7 @@ def model_from_views(
         "world_T_support": roi.world_T_support.tolist(),
         "roi_support_m": {"lo": roi.lo.tolist(), "hi": roi.hi.tolist()},
         "mesh": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in checks.items()},
+        "base_sigma_mm": None if not (refit or {}).get("refined") else refit["u_base_mm"],
         "adjust": None if adjust_report is None else _plain(adjust_report),
         "timings_s": timings,
         "warnings": warnings,

@@ -97,8 +97,17 @@ def measure_file(
         else:
             notes.append(f"scale uncertainty {100 * scale_sigma_rel:.3f} % (1 sigma, the run's factor graph)")
     base_closed = (model_path.with_name("model.json")).is_file()  # our models close the base on the support
+    base_sigma = trust.base_sigma_mm or 0.0
+    if base_closed:
+        notes.append(
+            "base: unknown uncertainty of the support plane it closes on (not in U95)"
+            if trust.base_sigma_mm is None
+            else f"base: closed on the support plane, +-{base_sigma:.3f} mm (1 sigma, in U95 of the dimensions to it)"
+        )
     try:
-        dims = measure(pts, nrm, shape, cad, scale_sigma_rel, u_model_mm, base_is_closure=base_closed)
+        dims = measure(
+            pts, nrm, shape, cad, scale_sigma_rel, u_model_mm, base_is_closure=base_closed, u_base_mm=base_sigma
+        )
     except ModelError as exc:
         raise ModelError(f"{model_path}: {exc}") from None
     if not dims:

@@ -19,7 +19,9 @@ rows and text in `vio.model.measure_report`.
 Uncertainty: U95 = k sqrt(u_fit^2 + (scale_sigma_rel * value)^2 + u_model^2), k = 1.96. u_fit is the standard
 error of the dimension from the fits' covariances (residuals only; it ignores correlated reconstruction error),
 u_scale the trajectory's relative scale sigma times the value (0 for angles, which a scale does not change), and
-u_model an optional systematic term: the reconstruction's own error, which the benchmark calibrates.
+u_model an optional systematic term: the reconstruction's own error, which the benchmark calibrates; for a
+dimension that ends on a base closed on the support plane, the base's standard uncertainty is added to it in
+quadrature (`u_base_mm`, from model.json's `base_sigma_mm`).
 """
 
 from __future__ import annotations
@@ -69,6 +71,7 @@ def measure(
     u_model_mm: float = 0.0,
     u_model_deg: float = 0.0,
     base_is_closure: bool = False,
+    u_base_mm: float = 0.0,
     config: MeasureConfig | None = None,
 ) -> list[Dimension]:
     """Fit the primitives of `shape` ("box" | "auto", see the module docstring) and return the dimensions.
@@ -86,6 +89,8 @@ def measure(
     if nrm.shape != pts.shape:
         raise ModelError(f"normals of shape {nrm.shape} do not match the points' {pts.shape}")
     unc = {"scale_sigma_rel": scale_sigma_rel, "u_model_mm": u_model_mm, "u_model_deg": u_model_deg}
+    if base_is_closure:
+        unc["u_base_mm"] = u_base_mm
     rng = np.random.default_rng(cfg.seed)
     if shape == "box":
         return _measure_box(pts, nrm, cad, cfg, unc, base_is_closure, rng)
@@ -166,8 +171,15 @@ def _distance(a: Plane, b: Plane, unc: dict[str, float], base_is_closure: bool, 
     note += f"non-parallelism {tilt:.3f} deg ({np.ptp((on_small - qo) @ no):.3f} mm over the face)"
     if base_is_closure and min(ns[2], no[2]) < -0.99:
         note += "; base: the model's closure on the support plane"
+        unc = _with_base(unc)
     u_fit = prim.propagate(dist, [a.fit, b.fit])
     return dimension(f"{a.name} to {b.name}", "distance", value, u_fit, unc, [a.fit, b.fit], nominal, note)
+
+
+def _with_base(unc: dict[str, float]) -> dict[str, float]:
+    """The uncertainty terms of a dimension that ends on the base closed on the support plane: u_model grows by the
+    base's own standard uncertainty (`u_base_mm`, from `vio model`'s two estimates of the plane)."""
+    return {**unc, "u_model_mm": float(np.hypot(unc["u_model_mm"], unc.get("u_base_mm", 0.0)))}
 
 
 def _countersink_diameter(cone: Fit, plane: Fit, pc: np.ndarray, pp: np.ndarray) -> float:
@@ -286,5 +298,7 @@ def _measure_box(
                 nominal = _box_length(nominal_fits, [f.params for f in nominal_fits], i)
             value, u = length([f.params for f in fits]), prim.propagate(length, fits)
             axis = "xyz"[int(np.argmax(np.abs(axes[i][0])))]
-            dims.append(dimension(f"box edge {axis}", "length", value, u, unc, fits, nominal, "mean of 4 edges"))
+            to_base = base_is_closure and abs(axes[i][0][2]) > 0.99  # vertical edges end on the base
+            edge_unc = _with_base(unc) if to_base else unc
+            dims.append(dimension(f"box edge {axis}", "length", value, u, edge_unc, fits, nominal, "mean of 4 edges"))
     return dims

@@ -27,6 +27,7 @@ class RunTrust:
     reasons: tuple[str, ...]  # run.json's `reasons` when the run is not ok and its run.json is found
     run_dir: str | None  # the run folder model.json names
     model_warnings: tuple[str, ...]  # model.json's own `warnings` (e.g. a mesh that is not watertight)
+    base_sigma_mm: float | None = None  # standard uncertainty of the base closed on the support plane, mm
 
     @property
     def untrusted(self) -> bool:
@@ -76,7 +77,10 @@ def run_trust_beside(model_path: Path) -> RunTrust:
     warnings = tuple(str(w) for w in meta.get("warnings") or ())
     if not isinstance(sigma, (int, float)) or not np.isfinite(sigma) or sigma < 0:
         sigma = None
-    return RunTrust(sigma, None if status is None else str(status), reasons, run_dir, warnings)
+    base = meta.get("base_sigma_mm")
+    if not isinstance(base, (int, float)) or not np.isfinite(base) or base < 0:
+        base = None
+    return RunTrust(sigma, None if status is None else str(status), reasons, run_dir, warnings, base)
 
 
 def _json_object(path: Path) -> dict:

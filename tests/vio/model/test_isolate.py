@@ -233,14 +233,19 @@ def test_refine_plane_fits_the_table_around_the_part():
     roi = region_of_interest(
         wrong, views, np.zeros((0, 3)), user_box=np.array([[-0.048, -0.048, -0.01], [0.048, 0.048, 0.09]])
     )
-    plane, rebased, report = refine_plane(
-        wrong, roi, views, _depth_of_cube_on_table(views, half), np.random.default_rng(0)
-    )
+    maps = _depth_of_cube_on_table(views, half)
+    plane, rebased, report = refine_plane(wrong, roi, views, maps, np.random.default_rng(0), weight=1.0)
     assert report["refined"] and report["sides"] == 4, report
     assert report["lift_mm"] == pytest.approx(-1.5, abs=0.05)
     np.testing.assert_allclose(plane.normal, [0.0, 0.0, 1.0], atol=1e-5)
     assert plane.d_m == pytest.approx(0.0, abs=2e-5)
     assert abs(rebased.world_T_support[2, 3]) < 2e-5 and rebased.world_T_support[2, 2] == pytest.approx(1.0)
+    # the default takes the mean of the two planes, and half their difference as the base's uncertainty
+    mean, _, report = refine_plane(wrong, roi, views, maps, np.random.default_rng(0))
+    assert report["u_base_mm"] == pytest.approx(0.75, abs=0.03)
+    under = np.array([0.0, 0.0, 0.0])
+    assert wrong.height(under)[()] == pytest.approx(-1.5e-3, abs=1e-6)
+    assert mean.height(under)[()] == pytest.approx(-0.75e-3, abs=3e-5)
     kept, same, why = refine_plane(
         wrong, roi, views, _depth_of_cube_on_table(views, half, table=False), np.random.default_rng(0)
     )

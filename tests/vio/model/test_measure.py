@@ -213,3 +213,17 @@ def test_an_uncertainty_that_is_not_a_finite_non_negative_number_is_refused(tmp_
         with pytest.raises(ModelError, match="must be a finite number >= 0"):
             measure_file(model, "box", out_dir=tmp_path / "out", **kwargs)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_base_uncertainty_goes_with_the_dimensions_that_end_on_the_base(cube):
+    """`vio model` closes the base on a support plane known to +-u_base: the height and the vertical edges carry it,
+    the widths do not."""
+    points, normals, _ = cube
+    dims = measure(points, normals, "box", scale_sigma_rel=0.003, base_is_closure=True, u_base_mm=0.4)
+    for d in dims:
+        vertical = d.name.startswith(("box z", "box edge z"))
+        assert d.components["u_model"] == pytest.approx(0.4 if vertical else 0.0), d.name
+        assert d.U95 == pytest.approx(
+            1.96 * np.sqrt(d.components["u_fit"] ** 2 + (0.003 * d.measured) ** 2 + (0.4 if vertical else 0.0) ** 2)
+        )
+    assert all("base: the model's closure" in d.note for d in dims if d.name.startswith("box z"))
