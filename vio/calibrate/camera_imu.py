@@ -122,7 +122,7 @@ def calibrate_with_board(
 ) -> CameraImuCalibration:
     """Rotation, translation and time offset of `cap`'s camera (module docstring). `cap` must carry the camera's
     intrinsics; `read_shift_ns` is the time shift its frame times were read with (the result's shift includes it)."""
-    from vio.calibrate.extrinsic_graph import ExtrinsicGraph
+    from vio.calibrate.extrinsic_graph import OFFSET_SEARCH_NS, ExtrinsicGraph
 
     if cap.imu is None:
         raise CalibrationError(f"{cap.root}: the capture has no IMU stream")
@@ -147,6 +147,11 @@ def calibrate_with_board(
     rot_std = np.sqrt(np.maximum(np.diag(cov_rot), 0.0))
     trans_std = np.sqrt(np.maximum(np.diag(cov_trans), 0.0))
     excited, notes = _excitation(rot_std, trans_std, sol.offset_std_ns)
+    if abs(sol.offset_ns - ra.offset_ns) > 0.9 * OFFSET_SEARCH_NS:
+        notes.append(
+            f"the graph's time offset is at the edge of its search (+-{OFFSET_SEARCH_NS * 1e-6:g} ms around the "
+            f"rotation step's {(read_shift_ns + ra.offset_ns) * 1e-6:+.1f} ms): treat it with care"
+        )
     return CameraImuCalibration(
         body_T_cam=sol.body_T_cam,
         rotation_std_rad=rot_std,
