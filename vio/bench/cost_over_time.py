@@ -186,6 +186,36 @@ def plot(record: dict[str, Any], path: Path, label: str) -> None:
     plt.close(fig)
 
 
+def plot_compare(paths: list[str], labels: list[str], out: str) -> None:
+    """Several runs' `cost.json` in one picture: per-keyframe CPU latency and resident memory over the capture."""
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from vio.atomic import atomic_open
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    for path, label in zip(paths, labels, strict=True):
+        record = json.loads(Path(path).read_text())
+        ax1.plot(record["keyframe_t_s"], record["keyframe_cpu_ms"], ".", ms=2, label=label)
+        mem = np.asarray(record["memory"]).reshape(-1, 2)
+        ax2.plot(mem[:, 0], mem[:, 1], label=label)
+    ax1.set_yscale("log")
+    ax1.set_ylabel("keyframe update, CPU ms")
+    ax2.set_ylabel("resident memory, MiB")
+    ax2.set_xlabel("capture time, s")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper left", markerscale=4)
+    fig.tight_layout()
+    with atomic_open(out, "wb") as f:
+        fig.savefig(f, format="png", dpi=90)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m vio.bench.cost_over_time", description=__doc__.split("\n")[0])
     ap.add_argument("capture")
