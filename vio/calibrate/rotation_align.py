@@ -6,7 +6,8 @@ tracks) against the gyro's.
    d of the highest Pearson correlation wins (1 ms grid, parabolic refinement).
 2. Rotation, closed form (hand-eye): for frame pairs (i, j) the camera's turn a_c (rotation vector in the camera
    frame) and the gyro's turn a_b over [t_i + d, t_j + d] satisfy a_b = body_R_cam a_c; body_R_cam is the rotation
-   that best maps one set onto the other (Kabsch).
+   that best maps one set onto the other (Kabsch). Pairs that miss it by far more than the others (OUTLIER_*) are
+   left out and the rotation solved again.
 3. Joint refinement: body_R_cam, d and a constant gyro bias minimise the rotation residuals
    Log(gyro turn^-1 * body_R_cam * camera turn * body_R_cam^T) over the pairs (scipy least squares); their standard
    deviations are sigma^2 (J^T J)^-1 with sigma the RMS residual. Pairs do not overlap in time, so their gyro noise is
@@ -32,6 +33,8 @@ log = logging.getLogger(__name__)
 PAIR_SPAN_S = 0.2  # time between the two frames of a refinement pair, s (longer: more turn per pair, more bias)
 GRID_STEP_NS = 1_000_000  # cross-correlation grid, ns
 MIN_PAIRS = 10
+OUTLIER_FACTOR = 5.0  # a pair whose turns disagree by more than this many times the median (and ...
+OUTLIER_FLOOR_RAD = np.deg2rad(0.5)  # ... by more than this) is left out of the rotation
 MIN_RMS_SPEED_RAD_S = np.deg2rad(3.0)  # below this RMS angular speed (bias removed) the camera did not rotate
 SPEED_BIN_S = 0.2  # the rotation check reads the gyro's mean rate over bins of this length (noise averaged out)
 WEAK_AXIS_RAD = np.deg2rad(5.0)  # an axis turned less than this (RMS of the pairs' turns about it) is weak
@@ -169,6 +172,13 @@ def align_rotation(
         raise CalibrationError(f"only {len(sel.t0_ns)} frame pairs for the rotation; at least {MIN_PAIRS} are needed")
     body = gyro.between(sel.t0_ns, sel.t1_ns, offset0).as_rotvec()
     R0 = Rotation.from_matrix(hand_eye(sel.rotvec, body))
+    # Outlier pairs (a wrong board pose, a bad essential matrix): far off the closed-form solution.
+    miss = np.linalg.norm(body - R0.apply(sel.rotvec), axis=1)
+    good = miss <= max(OUTLIER_FACTOR * float(np.median(miss)), OUTLIER_FLOOR_RAD)
+    if not good.all():
+        log.info("rotation: %d of %d pairs dropped as outliers", int((~good).sum()), len(good))
+        sel = CameraTurns(sel.t0_ns[good], sel.t1_ns[good], sel.rotvec[good])
+        R0 = Rotation.from_matrix(hand_eye(sel.rotvec, body[good]))
     sol = least_squares(_residuals, np.zeros(7), args=(R0, sel, imu, offset0), x_scale=[1e-3] * 3 + [1.0] + [1e-3] * 3)
     r = sol.fun
     dof = max(r.size - 7, 1)

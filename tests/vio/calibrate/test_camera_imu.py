@@ -57,6 +57,33 @@ def test_hand_eye_recovers_an_exact_rotation():
     assert _rotation_error_deg(hand_eye(a_cam, a_cam @ truth.T), truth) < 1e-9
 
 
+def test_the_rotation_step_recovers_an_exact_rotation_offset_and_bias_past_an_outlier():
+    """Camera turns made from the gyro itself (exact), stamped 23 ms early, one pair corrupted by 20 deg."""
+    from vio.calibrate.rotation_align import PAIR_SPAN_S, align_rotation, turns_from_poses
+
+    rng = np.random.default_rng(3)
+    t_imu = 10**18 + np.arange(2001, dtype=np.int64) * 5_000_000  # 10 s at 200 Hz
+    ts = (t_imu - t_imu[0]) * 1e-9
+    freqs, phases = rng.uniform(0.3, 1.5, (3, 3)), rng.uniform(0, 2 * np.pi, (3, 3))
+    rate = np.sum(0.8 * np.sin(2 * np.pi * freqs[None] * ts[:, None, None] + phases[None]), axis=2)  # rad/s
+    bias = np.array([0.004, -0.006, 0.003])
+    imu = ImuSeries(t_imu, rate + bias, np.zeros_like(rate))
+    truth = Rotation.from_euler("xyz", [179.4, 0.8, -88.8], degrees=True)
+    offset_ns = 23_000_000
+    t_true = t_imu[0] + 300_000_000 + np.arange(180, dtype=np.int64) * 50_000_000  # 20 Hz inside the IMU span
+    world_R_cam = GyroIntegral(ImuSeries(t_imu, rate, np.zeros_like(rate))).at(t_true) * truth
+    stamps = t_true - offset_ns
+    steps = turns_from_poses(stamps, world_R_cam, 0.025, 0.025)
+    turns = turns_from_poses(stamps, world_R_cam, PAIR_SPAN_S, 0.05)
+    bad = turns.rotvec.copy()
+    bad[7] = (Rotation.from_rotvec(bad[7]) * Rotation.from_euler("x", 20, degrees=True)).as_rotvec()
+    ra = align_rotation(steps, type(turns)(turns.t0_ns, turns.t1_ns, bad), imu)
+    assert _rotation_error_deg(ra.body_R_cam, truth.as_matrix()) < 0.01
+    assert abs(ra.offset_ns - offset_ns) < 50_000  # 0.05 ms
+    np.testing.assert_allclose(ra.gyro_bias_rad_s, bias, atol=2e-4)
+    assert ra.pairs == len(turns.t0_ns) - 1 and abs(ra.offset_xcorr_ns - offset_ns) < 2e6
+
+
 def test_the_board_factor_jacobians_match_numerical_derivatives():
     import gtsam
 
