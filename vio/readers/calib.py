@@ -20,7 +20,8 @@ from vio.records import CameraCalib, ImuCalib
 
 log = logging.getLogger(__name__)
 
-CALIB_NAMES = ("calib.yaml", "camchain.yaml", "camchain-imucam.yaml")
+CALIB_NAMES = ("calib.yaml", "camchain-imucam.yaml", "camchain-imu.yaml", "camchain.yaml")  # first found wins:
+# `vio calibrate camera-imu` writes camchain-imu.yaml beside the camera-only camchain.yaml, and it is the complete one
 # IMU noise presets (Kalibr order and units: gyroscope_noise_density rad/s/sqrt(Hz), accelerometer_noise_density
 # m/s^2/sqrt(Hz), gyroscope_random_walk rad/s^2/sqrt(Hz), accelerometer_random_walk m/s^3/sqrt(Hz), rate Hz).
 # PHONE_IMU_DEFAULT is assumed when a capture has no IMU noise calibration: a typical phone MEMS IMU with a safety
@@ -95,7 +96,7 @@ def load_calibration(path: str | Path) -> Calibration:
 
 
 def find_calibration(folder: Path) -> Calibration | None:
-    """A calibration stored with a capture: `calib.yaml`, `camchain.yaml` or `*camchain*.yaml` in `folder`."""
+    """A calibration stored with a capture: the first of `CALIB_NAMES` in `folder`, else `*camchain*.yaml`."""
     folder = Path(folder)
     for name in CALIB_NAMES:
         if (folder / name).is_file():

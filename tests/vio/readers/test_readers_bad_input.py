@@ -295,3 +295,24 @@ def test_cli_backwards_timestamps_is_one_line_no_traceback(mars, tmp_path):
     r = _vio("info", str(mars))  # vio info lists it among the problems and describes the rest
     assert r.returncode == 0 and "Traceback" not in r.stderr
     assert "  error: " in r.stdout and "gyro_accel.csv:12: IMU timestamp goes backwards" in r.stdout
+
+
+def test_a_calibration_folder_prefers_the_camera_imu_camchain(tmp_path):
+    """`vio calibrate camera` writes camchain.yaml, then `vio calibrate camera-imu` camchain-imu.yaml beside it:
+    `--calib folder/` takes the complete one (the extrinsic and the clock offset), not the camera-only one."""
+    from vio.kalibr import camchain_yaml_text
+    from vio.readers.calib import load_calibration
+    from vio.records import CameraCalib
+
+    mount = np.eye(4)
+    mount[:3, 3] = [0.01, 0.02, 0.0]
+    (tmp_path / "camchain.yaml").write_text(
+        camchain_yaml_text(CameraCalib(640, 480, 500.0, 500.0, 320.0, 240.0, np.zeros(4), np.eye(4)))
+    )
+    (tmp_path / "camchain-imu.yaml").write_text(
+        camchain_yaml_text(CameraCalib(640, 480, 500.0, 500.0, 320.0, 240.0, np.zeros(4), mount), timeshift_s=0.015)
+    )
+    calib = load_calibration(tmp_path)
+    assert calib.source.name == "camchain-imu.yaml"
+    np.testing.assert_allclose(calib.camera.body_T_cam, mount, atol=1e-12)
+    assert calib.timeshift_cam_imu_ns == 15_000_000
