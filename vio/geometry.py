@@ -54,3 +54,13 @@ def sample_triangles(tri: np.ndarray, count: int, rng: np.random.Generator) -> t
     a[fold], b[fold] = 1.0 - a[fold], 1.0 - b[fold]
     t = tri[face]
     return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0]), face
+
+
+def parabolic_peak(y: np.ndarray, k: int) -> float:
+    """Sub-sample position of the maximum of samples y at index k (the vertex of the parabola through y[k-1..k+1]),
+    in samples from k; 0 at either end or where the three do not bend down."""
+    if not 0 < k < len(y) - 1:
+        return 0.0
+    y0, y1, y2 = float(y[k - 1]), float(y[k]), float(y[k + 1])
+    den = y0 - 2.0 * y1 + y2
+    return 0.5 * (y0 - y2) / den if den < 0 else 0.0

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from vio.calibrate.gyro import GyroIntegral
 from vio.errors import CalibrationError
+from vio.geometry import parabolic_peak
 from vio.records import ImuSeries
 
 log = logging.getLogger(__name__)
@@ -110,12 +111,7 @@ def xcorr_offset(
         g = g - g.mean()
         corr[k] = float(g @ c) / (float(np.linalg.norm(g) * np.linalg.norm(c)) + 1e-12)
     k = int(np.argmax(corr))
-    best = float(offsets[k])
-    if 0 < k < len(corr) - 1:
-        y0, y1, y2 = corr[k - 1], corr[k], corr[k + 1]
-        den = y0 - 2 * y1 + y2
-        if den < 0:
-            best += 0.5 * (y0 - y2) / den * GRID_STEP_NS
+    best = float(offsets[k]) + parabolic_peak(corr, k) * GRID_STEP_NS
     if k in (0, len(corr) - 1):
         raise CalibrationError(
             f"the camera-IMU time offset is at the search limit (+-{max_offset_s:g} s): widen --max-offset-ms or "

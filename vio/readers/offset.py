@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from vio.capture import Capture
 from vio.errors import CaptureError
+from vio.geometry import parabolic_peak
 
 log = logging.getLogger(__name__)
 
@@ -149,12 +150,7 @@ def estimate_time_offset(cap: Capture, max_offset_s: float = 0.3, max_pairs: int
     g = gyro_rate - gyro_rate.mean(axis=1, keepdims=True)
     corr = (g @ c) / (np.linalg.norm(g, axis=1) * np.linalg.norm(c) + 1e-12)
     k = int(np.argmax(corr))
-    best = float(offsets[k])
-    if 0 < k < len(corr) - 1:
-        y0, y1, y2 = corr[k - 1], corr[k], corr[k + 1]
-        den = y0 - 2 * y1 + y2
-        if den < 0:
-            best += 0.5 * (y0 - y2) / den * 1e6
+    best = float(offsets[k]) + parabolic_peak(corr, k) * 1e6
     note = "" if corr[k] >= 0.5 else "weak correlation: the estimate is unreliable"
     if k in (0, len(corr) - 1):
         note = f"best offset at the search limit (+-{max_offset_s:g} s): unreliable"
