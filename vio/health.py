@@ -230,9 +230,16 @@ def describe_span(span: HealthSpan, t0_ns: int) -> str:
 
 
 def summary_lines(summary: dict[str, object]) -> list[str]:
-    """The printed end of `vio run`: status, counts, and one line per reason."""
+    """The printed end of `vio run`: status, counts, one line per reason, and the scale's sigma with the capture
+    advice when it is large (backend/uncertainty.py)."""
     head = (
         f"status: {summary['status']} - {summary['num_states']} keyframes, {summary['num_landmarks']} landmarks, "
         f"{summary['span_s']:.1f} s of capture in {summary['wall_time_s']:.1f} s"
     )
-    return [head, *(f"  {r}" for r in summary.get("reasons", []))]  # type: ignore[union-attr]
+    lines = [head, *(f"  {r}" for r in summary.get("reasons", []))]  # type: ignore[union-attr]
+    scale = summary.get("scale") or {}
+    if scale.get("advice"):  # type: ignore[union-attr]
+        lines.append(str(scale["advice"]))  # type: ignore[index]
+    elif scale.get("sigma_rel") is not None:  # type: ignore[union-attr]
+        lines.append(f"scale sigma {100 * scale['sigma_rel']:.2f} % (from the graph)")  # type: ignore[index]
+    return lines

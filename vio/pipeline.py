@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from backend.estimator import VioEstimator
+from backend.uncertainty import motion_excitation, scale_advice
 from frontend.descriptors import KeyframeDescriber
 from frontend.keyframes import KeyframeSelector
 from frontend.preintegration import ImuPreintegrator
@@ -271,6 +272,7 @@ def _run(
         errors,
         health,
     )
+    summary["scale"].update(_scale_advice(cap, stats, states, gravity_frame=positions is None))
     result = RunResult(out, summary, stats, states, landmarks)
     if failure:
         outputs.write_run_json(out / "run.json", summary)
@@ -287,4 +289,19 @@ def _run(
         len(stats.recoveries),
         scale,
     )
+    if summary["scale"].get("advice"):
+        log.info("%s", summary["scale"]["advice"])
     return result, None
+
+
+def _scale_advice(
+    cap: Capture, stats: EstimatorStats, states: list[StateEstimate], gravity_frame: bool
+) -> dict[str, Any]:
+    """run.json `scale.excitation` (the run's squared body acceleration integrated, (m/s^2)^2 s) and `scale.advice`
+    (how to capture next time, or None): metric runs in the gravity-aligned world only (known positions bring their
+    own frame and scale)."""
+    if stats.scale_sigma_rel is None or cap.imu is None or cap.imu_calib is None or not gravity_frame:
+        return {}
+    density = cap.imu_calib.accelerometer_noise_density
+    excitation = motion_excitation(cap.imu, states, density)
+    return {"excitation": excitation, "advice": scale_advice(stats.scale_sigma_rel, excitation, density)}

@@ -37,6 +37,7 @@ def test_outputs_are_complete_and_consistent(eqvio_run):
     # the scale's standard deviation from the graph's joint marginals of distant keyframes (12 s of real flight)
     assert 0.0 < run["scale"]["sigma_rel"] < 0.05 and len(run["scale"]["pairs"]) >= 1
     assert all(p["distance_m"] > 0.1 and p["sigma_m"] > 0.0 for p in run["scale"]["pairs"])
+    assert run["scale"]["excitation"] > 0.0 and "advice" in run["scale"]  # the capture advice (issue 15)
     assert len(run["keyframe_ms"]["per_keyframe"]) > 0 and run["config"]["estimator"]["pixel_sigma"] == 1.0
     states = np.loadtxt(out / "states.csv", delimiter=",", skiprows=1)
     assert states.shape == (summary["num_states"], 17) and np.isfinite(states).all()
@@ -104,6 +105,7 @@ def test_cli_run_smoke(tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     assert (tmp_path / "trajectory.tum").exists() and (tmp_path / "landmarks.ply").exists()
     assert res.stdout.startswith("status: ok - ")  # the printed summary
+    assert "scale sigma" in res.stdout.splitlines()[-1]  # the scale's sigma, or the capture advice (issue 15)
 
 
 def test_whole_euroc_file_meets_the_targets_online_and_in_batch(tmp_path):
