@@ -107,7 +107,12 @@ def _camera(path: Path, sec: dict[str, Any], camchain: bool) -> CameraCalib:
         body_T_cam = inv_T(_transform(path, sec["T_cam_imu"], "T_cam_imu"))
     else:
         raise CalibrationError(f"{path}: cam0 lacks T_cam_imu (the camera-IMU extrinsics from Kalibr's imucam step)")
-    rate_hz = float(sec.get("rate_hz", 30.0 if camchain else 20.0))
+    try:
+        rate_hz = float(sec.get("rate_hz", 30.0 if camchain else 20.0))
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{path}: {where}rate_hz must be a number (frames per second)") from None
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise CalibrationError(f"{path}: {where}rate_hz must be a positive number (frames per second)")
     return CameraCalib(width, height, fx, fy, cx, cy, dist, body_T_cam, rate_hz)
 
 

@@ -316,3 +316,17 @@ def test_a_calibration_folder_prefers_the_camera_imu_camchain(tmp_path):
     assert calib.source.name == "camchain-imu.yaml"
     np.testing.assert_allclose(calib.camera.body_T_cam, mount, atol=1e-12)
     assert calib.timeshift_cam_imu_ns == 15_000_000
+
+
+@pytest.mark.parametrize("rate", ["../../etc/passwd", "-20", "nan"])
+def test_a_camchain_rate_that_is_not_a_frame_rate_is_one_line(tmp_path, rate):
+    """Found by the fuzzer: a rate_hz replaced by a path ended `vio info` on a MARS capture in a ValueError."""
+    from vio.errors import CalibrationError
+    from vio.kalibr import camchain_yaml_text
+    from vio.readers.calib import load_calibration
+    from vio.records import CameraCalib
+
+    text = camchain_yaml_text(CameraCalib(640, 480, 500.0, 500.0, 320.0, 240.0, np.zeros(4), np.eye(4)))
+    (tmp_path / "camchain.yaml").write_text(text.replace("rate_hz: 20", f"rate_hz: '{rate}'"))
+    with pytest.raises(CalibrationError, match="rate_hz must be a"):
+        load_calibration(tmp_path / "camchain.yaml")
