@@ -122,9 +122,9 @@ def model_from_views(
             raise
         warnings.append(f"no support plane ({exc}); the model's bottom is not closed")
     # sparse landmarks scatter mm about the table: the part is what stands clear of that (3 robust sigmas of it)
-    min_height = 1e-3
-    if sparse_from_run and plane is not None:
-        min_height = max(SPARSE_MIN_HEIGHT_M, isolate.haze_height(plane, sparse_world))
+    min_height = SPARSE_MIN_HEIGHT_M if sparse_from_run else 1e-3
+    if plane is not None:
+        min_height = max(min_height, isolate.haze_height(plane, sparse_world))
     roi = isolate.region_of_interest(plane, views, sparse_world, options.margin_m, options.roi_world, min_height)
     fuse.check_grid(roi, options.voxel_m)  # before the stereo: a region that swallowed the table fails now
     t0 = _timed(timings, "isolate", t0)

@@ -21,6 +21,7 @@ from vio.model.records import DepthMap, Roi, SupportPlane, View
 log = logging.getLogger(__name__)
 
 _MIN_POINTS = 50  # fewer points than this cannot give a plane or a part
+_CLOSE_M = 5e-3  # the footprint's closing radius
 _PROBE = 200  # points nearest the look-at point that set the cluster's cell size: a run's landmarks put 300-400 on
 # a 76 mm cube, so 2000 reached into the table's haze (landmarks 8-30 mm above it) and gave 0.19-0.25 m cells
 # that joined the table to the part (60 s orbits, seeds 101 and 102: 1.4 x 1.1 m regions; 200: 0.10 x 0.10 m)
@@ -166,8 +167,9 @@ def _footprint(local: np.ndarray, cell_m: float, min_points: int, gap_cells: flo
 
     Seen from above, a part's points crowd its footprint (a cube's top and its sides land on one square) while a
     table's stray points are thin: cells of `cell_m` on the plane holding, with their 8 neighbours, at least
-    `min_points` points, closed over gaps of up to 4 cells (sparse patches of a face: with 3.5 mm cells a cube's
-    footprint fell apart on seed 103 with known positions), 8-connected, the component nearest the origin. In
+    `min_points` points, closed over gaps of about 1 cm (sparse patches of a face: with 3.5 mm cells a cube's
+    footprint fell apart on seed 103 with known positions; a fixed 4-cell closing joined a first depth pass's
+    table noise over a metre with 8.7 mm cells), 8-connected, the component nearest the origin. In
     height, the part is the lowest run of its points without a gap wider than `gap_cells` cells (points floating
     above it are not the part)."""
     ij = np.floor(local[:, :2] / cell_m).astype(np.int64)
@@ -176,7 +178,8 @@ def _footprint(local: np.ndarray, cell_m: float, min_points: int, gap_cells: flo
     counts = np.zeros(tuple(ij.max(axis=0) + 1), np.float32)
     np.add.at(counts, (ij[:, 0], ij[:, 1]), 1.0)
     occupied = (cv2.boxFilter(counts, -1, (3, 3), normalize=False) >= min_points - 0.5).astype(np.uint8)
-    occupied = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))  # gaps of up to 4 cells
+    k = 2 * int(np.ceil(_CLOSE_M / cell_m)) + 1  # closes gaps of about 2 _CLOSE_M
+    occupied = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
     _, labels = cv2.connectedComponents(occupied, connectivity=8)
     cells = np.argwhere(labels > 0)
     if len(cells) == 0:
