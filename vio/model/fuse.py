@@ -277,7 +277,8 @@ def _integrate(
         acc.weight[sl] += np.where(near, wt, zero)
 
 
-MAX_GRID_VOXELS = 2**31
+MAX_GRID_VOXELS = 2**28  # 268 M voxels: a 250 mm cube at 0.4 mm. A 1.7 G-voxel grid (a region that took in a metre of
+# table) peaked at 16 GB in `vio model`; the 60 s cube's 24 M-voxel grid at 3 GB with its 120 full-size stills
 
 
 def check_grid(roi: Roi, voxel_m: float, coarse_factor: int = 4) -> None:

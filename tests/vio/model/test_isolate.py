@@ -250,3 +250,14 @@ def test_refine_plane_fits_the_table_around_the_part():
         wrong, roi, views, _depth_of_cube_on_table(views, half, table=False), np.random.default_rng(0)
     )
     assert kept is wrong and same is roi and not why["refined"] and "table points" in why["reason"]
+
+
+def test_a_region_over_a_metre_of_table_is_refused_before_the_stereo():
+    """The grid check runs right after isolation: a 1.1 x 1.05 m region at 0.4 mm (1.7 G voxels, 16 GB when it
+    was fused) is one line naming the region and --roi."""
+    from vio.model.fuse import check_grid
+    from vio.model.records import Roi
+
+    with pytest.raises(ModelError, match=r"1122 x 1053 x 90 mm: a fusion grid .* --roi"):
+        check_grid(Roi(np.eye(4), np.array([-0.561, -0.5265, -0.01]), np.array([0.561, 0.5265, 0.089])), 4e-4)
+    check_grid(Roi(np.eye(4), np.array([-0.06, -0.06, -0.01]), np.array([0.06, 0.06, 0.1])), 4e-4)  # a part: fine
