@@ -190,13 +190,9 @@ def _plain(record: Any) -> dict[str, Any]:
 
 def _depth_points(views: Sequence[View], maps: Sequence[Any], n: int, rng: np.random.Generator) -> np.ndarray:
     """Up to n world points from depth maps (m)."""
-    pts = []
-    for dm in maps:
-        v = views[dm.view]
-        vv, uu = np.nonzero(np.isfinite(dm.depth_m))
-        z = dm.depth_m[vv, uu]
-        xyz = np.linalg.solve(v.K, np.stack([uu * z, vv * z, z]))
-        pts.append(xyz.T @ v.world_T_cam[:3, :3].T + v.world_T_cam[:3, 3])
+    from vio.model.dense_common import depth_points
+
+    pts = [depth_points(views[dm.view], dm) for dm in maps]
     p = np.concatenate(pts) if pts else np.zeros((0, 3))
     return p[rng.choice(len(p), size=min(n, len(p)), replace=False)] if len(p) else p
 

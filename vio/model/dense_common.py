@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from vio.geometry import inv_T
-from vio.model.records import Roi, View
+from vio.model.records import DepthMap, Roi, View
 
 METHODS = ("sweep", "sgbm")
 
@@ -121,3 +121,15 @@ def roi_window(crop: Crop, roi: Roi | None, config: DenseConfig) -> Window | Non
         return None
     t_near[miss], t_far[miss] = np.nan, np.nan
     return Window(crop, t_near.astype(np.float32), t_far.astype(np.float32))
+
+
+def depth_points(view: View, dm: DepthMap, rng: np.random.Generator | None = None, limit: int = 0) -> np.ndarray:
+    """World points (N, 3) m of a depth map's known pixels (`view` is its reference); at most `limit` of them,
+    drawn at random with `rng`, when limit > 0."""
+    vv, uu = np.nonzero(np.isfinite(dm.depth_m))
+    if limit > 0 and len(vv) > limit and rng is not None:
+        keep = rng.choice(len(vv), limit, replace=False)
+        vv, uu = vv[keep], uu[keep]
+    z = dm.depth_m[vv, uu].astype(np.float64)
+    cam = np.linalg.solve(view.K, np.stack([uu * z, vv * z, z]))
+    return cam.T @ view.world_T_cam[:3, :3].T + view.world_T_cam[:3, 3]

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vio.errors import ModelError
+from vio.model.dense_common import depth_points
 from vio.model.records import DepthMap, Roi, SupportPlane, View
 
 log = logging.getLogger(__name__)
@@ -320,18 +321,8 @@ def refine_plane(
     two (0.5: their mean), and the report's `u_base_mm` (the base's standard uncertainty: half their difference
     for the mean) goes with every dimension measured to the base. Returns (plane, roi, report for model.json)."""
     T = roi.world_T_support
-    local = []
-    for dm in maps:
-        v = views[dm.view]
-        vv, uu = np.nonzero(np.isfinite(dm.depth_m))
-        if len(vv) > per_map:
-            keep = rng.choice(len(vv), per_map, replace=False)
-            vv, uu = vv[keep], uu[keep]
-        z = dm.depth_m[vv, uu].astype(np.float64)
-        cam = np.linalg.solve(v.K, np.stack([uu * z, vv * z, z]))
-        world = cam.T @ v.world_T_cam[:3, :3].T + v.world_T_cam[:3, 3]
-        local.append((world - T[:3, 3]) @ T[:3, :3])
-    p = np.concatenate(local) if local else np.zeros((0, 3))
+    world = [depth_points(views[dm.view], dm, rng, per_map) for dm in maps]
+    p = (np.concatenate(world) - T[:3, 3]) @ T[:3, :3] if world else np.zeros((0, 3))
     p = p[((p >= roi.lo) & (p <= roi.hi)).all(axis=1)]
     report: dict[str, Any] = {"refined": False}
     if len(p) == 0:
