@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from vio.bench.ranking import headline_key, method_rank
+from vio.bench.ranking import has_metric_scale, headline_key, method_rank
 
 N_RESAMPLES = 4000
 LEVEL = 0.95
@@ -57,6 +57,8 @@ def _metric(row: dict[str, Any], metric: str) -> float | None:
     if metric == "ate_m":
         return row.get(headline_key(str(row["method"])))
     if metric == "scale_err_pct":
+        if not has_metric_scale(str(row["method"])):
+            return None
         s = row.get("scale")
         return None if s is None or s <= 0 else 100.0 * (1.0 / s - 1.0)
     if metric == "scale_sigma_pct":

@@ -76,3 +76,13 @@ def test_scale_coverage_counts_errors_within_the_stated_sigma():
     assert g["scale_sigma_pct"]["median"] == pytest.approx(1.0) and g["scale_err_pct"]["median"] == pytest.approx(0.25)
     assert "| orbit | phone | vio | 4 | 3.0 [3.0, 3.0] | 0.250 [" in stats_markdown(bench_stats(rows))
     assert "| 1.000 [1.000, 1.000] | 2/3 |" in stats_markdown(bench_stats(rows))
+
+
+def test_methods_without_metric_scale_state_no_scale_error():
+    """vision_only's Sim3 scale is its first baseline's and imu_only's that of a trajectory off by metres: neither
+    is a scale error (the quick suite's table once read 2290 % and 21550 % for them)."""
+    rows = [_row(m, 0, 0.01, scale=0.04, ate_sim3_m=0.05) for m in ("vio", "vision_only", "imu_only")]
+    groups = {g["method"]: g for g in group_stats(rows) if g["scenario"] == "orbit"}
+    assert groups["vio"]["scale_err_pct"]["median"] == pytest.approx(2400.0)
+    assert groups["vision_only"]["scale_err_pct"]["median"] is None
+    assert groups["imu_only"]["scale_err_pct"]["median"] is None
