@@ -30,12 +30,21 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from vio.sim.phone import simulate_options
 
     phone = simulate_options(args.camera, args.readout_ms, args.exposure_ms, args.time_offset_ms, args.imu_rate)
+    real = {}
+    if args.real_imu is not None:
+        if args.imu is not None:
+            raise VioError("--imu chooses a simulated IMU's grade; with --real-imu the noise comes from --imu-calib")
+        real = {"real_imu": args.real_imu, "real_imu_calib": args.imu_calib}
+    elif args.imu_calib is not None:
+        raise VioError("--imu-calib goes with --real-imu")
+    if args.start is not None:
+        phone["start_s"] = args.start
     simulate(
         args.scenario,
         args.out,
         seed=args.seed,
         duration_s=args.duration,
-        imu_grade=args.imu,
+        imu_grade=args.imu or "phone",
         overwrite=args.force,
         images=not args.no_images,
         part=args.object,
@@ -46,6 +55,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         board=args.board,
         calibration_motion=args.motion,
         mars=args.mars,
+        **real,
         **phone,
     )
     return 0
@@ -143,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output capture folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's own)")
-    p.add_argument("--imu", choices=["phone", "tactical", "ideal"], default="phone")
+    p.add_argument("--imu", choices=["phone", "tactical", "euroc", "ideal"], help="simulated IMU grade (default phone)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.add_argument("--no-images", action="store_true", help="skip rendering (IMU and ground truth only)")
     p.add_argument(
@@ -172,6 +182,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time-offset-ms", type=float, help="camera clock offset, t_imu = t_cam + offset (phone: 15)")
     p.add_argument("--imu-rate", type=float, metavar="HZ", help="IMU rate (default 200; phone: 100)")
     p.add_argument("--mars", metavar="DIR", help="also write the capture as a MARS logger folder (H.264 video)")
+    p.add_argument(
+        "--real-imu",
+        metavar="IMU.csv",
+        help="write this real IMU recording (EuRoC/ASL imu0/data.csv, on the trajectory file's clock; the trajectory "
+        "is the IMU's pose) instead of a simulated IMU: the semi-real capture",
+    )
+    p.add_argument(
+        "--imu-calib",
+        metavar="YAML",
+        help="the real IMU's noise (Kalibr IMU YAML or ASL sensor.yaml; default: sensor.yaml beside --real-imu)",
+    )
+    p.add_argument("--start", type=float, metavar="S", help="start this many seconds into a trajectory file")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")

@@ -53,6 +53,8 @@ def load_scenario(
     phone: PhoneCamera | None = None,
     imu_rate_hz: float | None = None,
     phone_imu: PhoneImu | None = None,
+    start_s: float = 0.0,
+    file_clock: bool = False,
 ) -> Scenario:
     """Build a scenario by name (`orbit`, `figure8`, `room`), from a scenario YAML (`data/synthetic/*.yaml`), or
     from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses.
@@ -61,7 +63,9 @@ def load_scenario(
     painted with `surface` (speckle | plain). `stills_hz` > 0 adds full-resolution stills of `stills_size`
     (width, height) px taken by the same camera (`mav0/cam1`). `phone` is the rolling-shutter camera model
     (`vio.sim.phone`; None: the default global-shutter camera), `imu_rate_hz` the IMU rate (None: 200 Hz) and
-    `phone_imu` the magnitudes of the IMU's scale-factor, misalignment and timestamp errors (None: none)."""
+    `phone_imu` the magnitudes of the IMU's scale-factor, misalignment and timestamp errors (None: none).
+    `start_s` (trajectory files only) starts the capture that many seconds into the trajectory; a trajectory
+    file's own clock is kept when its times are epoch-sized or `file_clock` (a real IMU on that clock)."""
     if surface not in SURFACES:
         raise SimulationError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
     the_part = build_part(part, part_units)
@@ -77,10 +81,14 @@ def load_scenario(
         phone.validate(rig.CAMERA_RATE_HZ, camera.height)
     name = str(scenario)
     t0_ns = rig.T0_NS
+    if not np.isfinite(start_s) or start_s < 0:
+        raise SimulationError(f"start must be a non-negative number of seconds, got {start_s:g}")
     span = None
     definition = None
     if name not in BUILTIN and name.lower().endswith((".yaml", ".yml")) and Path(name).is_file():
         definition = read_definition(Path(name))
+    if (name in BUILTIN or definition is not None) and start_s:
+        raise SimulationError("--start is for a trajectory file scenario (EuRoC CSV or TUM)")
     if name in BUILTIN or definition is not None:
         base = name if definition is None else definition.base
         motion = {} if definition is None else definition.motion
@@ -109,11 +117,14 @@ def load_scenario(
             )
         traj0, t_first_ns, p_world = _from_file(path)
         scene = scenarios.trajectory_room_scene(p_world, texture_seed, the_part, surface)
-        span = traj0.duration_s
+        if start_s >= traj0.duration_s - 1.0:
+            raise SimulationError(f"{name}: start {start_s:g} s leaves less than 1 s of the {traj0.duration_s:.3f} s")
+        span = traj0.duration_s - start_s
         default_s = span
-        traj_fn = traj0.pose
-        if t_first_ns > 10**17:
+        traj_fn = _shifted(traj0, start_s)
+        if t_first_ns > 10**17 or file_clock:
             t0_ns = t_first_ns
+        t0_ns += int(round(start_s * 1e9))
     dur = default_s if duration_s is None else float(duration_s)
     if not np.isfinite(dur) or dur <= 0:
         raise SimulationError(f"duration must be positive, got {duration_s}")
@@ -137,6 +148,13 @@ def load_scenario(
         phone=phone,
         imu_errors=None if phone_imu is None else phone_imu.draw(np.random.default_rng(ss_imu_errors)),
     )
+
+
+def _shifted(traj: Trajectory, start_s: float):
+    """The pose function of `traj` started `start_s` seconds in."""
+    if not start_s:
+        return traj.pose
+    return lambda t: traj.pose(t + start_s)
 
 
 MAX_STILLS_SIZE = (4032, 3024)
@@ -195,6 +213,8 @@ def simulate(
     images: bool = True,
     workers: int | None = None,
     mars: str | os.PathLike[str] | None = None,
+    real_imu: str | os.PathLike[str] | None = None,
+    real_imu_calib: str | os.PathLike[str] | None = None,
     **scene: Any,
 ) -> Path:
     """Simulate a capture and write it in the ASL layout under `out`; returns `out` as a Path.
@@ -204,7 +224,10 @@ def simulate(
     `calibration_motion=sway|excite` and, of the camera knobs, the time offset alone in `scene`.
     `workers` render processes (default: 2, or 1 for short captures). `scene` holds `load_scenario`'s part,
     part_units, surface, stills_hz, stills_size, phone, imu_rate_hz and phone_imu; `mars` (a folder) also
-    writes the capture as a MARS logger folder with H.264 video (`vio.writers.mars`).
+    writes the capture as a MARS logger folder with H.264 video (`vio.writers.mars`). `real_imu` (an EuRoC/ASL
+    `imu0/data.csv` on the trajectory file's clock) replaces the simulated IMU with the recording's samples, its
+    noise from `real_imu_calib` or the `sensor.yaml` beside it (`vio.sim.real_imu`); `scene` may then also hold
+    `start_s`, the start within the trajectory.
     """
     board = scene.pop("board", None)
     motion = scene.pop("calibration_motion", None)
@@ -228,6 +251,11 @@ def simulate(
     for name, value in (("--board", board), ("--motion", motion)):
         if value is not None:
             raise SimulationError(f"{name} is for the calibration scenario (vio simulate calibration {name} ...)")
+    if real_imu is not None:
+        return _simulate_real_imu(scenario, out, seed, duration_s, overwrite, images, workers, mars, real_imu,
+                                  real_imu_calib, scene)  # fmt: skip
+    if real_imu_calib is not None:
+        raise SimulationError("--imu-calib goes with --real-imu (the simulated IMU's noise is --imu's grade)")
     sc = load_scenario(scenario, seed, duration_s, imu_grade, **scene)
     _, ss_imu, ss_img, _, ss_stills, _, ss_jitter = _streams(seed)
     imu, gt = simulate_imu(
@@ -247,4 +275,55 @@ def simulate(
 
         write_mars_from_asl(out, mars, overwrite=overwrite)
     log.info("simulated %s (%.1f s, seed %d, %s IMU) into %s", sc.name, sc.duration_s, seed, sc.imu_grade, out)
+    return Path(out)
+
+
+def _simulate_real_imu(
+    scenario: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    seed: int,
+    duration_s: float | None,
+    overwrite: bool,
+    images: bool,
+    workers: int | None,
+    mars: str | os.PathLike[str] | None,
+    real_imu: str | os.PathLike[str],
+    real_imu_calib: str | os.PathLike[str] | None,
+    scene: dict[str, Any],
+) -> Path:
+    """`simulate` with a real IMU recording (`vio.sim.real_imu`): the vision rendered along the trajectory file,
+    the IMU stream and its noise calibration from the recording, the ground truth at the real IMU's times."""
+    from vio.sim.real_imu import ground_truth_at, imu_window, load_real_imu, trajectory_biases
+
+    if str(scenario) in BUILTIN or str(scenario).lower().endswith((".yaml", ".yml")):
+        raise SimulationError("--real-imu needs a trajectory file scenario (EuRoC CSV or TUM) on the IMU's clock")
+    if {"phone_imu", "imu_rate_hz"} & set(scene):
+        raise SimulationError("--real-imu replaces the simulated IMU: --imu-rate and the phone IMU do not apply")
+    real = load_real_imu(real_imu, real_imu_calib)
+    sc = load_scenario(scenario, seed, duration_s, "ideal", file_clock=True, **scene)
+    imu = imu_window(real, sc.t0_ns, sc.duration_s)
+    biases = trajectory_biases(scenario)
+    sc = replace(
+        sc,
+        imu_calib=real.calib,
+        imu_grade="real",
+        imu_rate_hz=real.calib.rate_hz,
+        real_imu={
+            "imu": str(real.source),
+            "noise_from": str(real.calib_source),
+            "start_s": float(scene.get("start_s", 0.0)),
+            "biases": "interpolated from the trajectory file" if biases is not None else "unknown (written as 0)",
+            "ground_truth": "the trajectory's spline at the real IMU's times; the IMU measured the real motion",
+        },
+    )
+    gt = ground_truth_at(sc.trajectory, sc.t0_ns, imu.t_ns, biases)
+    _, _, ss_img, _, ss_stills, _, _ = _streams(seed)
+    with AslWriter(out, overwrite=overwrite) as writer:
+        write_capture(writer, sc, imu, gt, images, (ss_img, ss_stills), workers)
+    if mars is not None:
+        from vio.writers.mars import write_mars_from_asl
+
+        write_mars_from_asl(out, mars, overwrite=overwrite)
+    log.info("simulated vision along %s (%.1f s from %.1f s, seed %d) with the real IMU %s into %s", sc.name,
+             sc.duration_s, float(scene.get("start_s", 0.0)), seed, real.source, out)  # fmt: skip
     return Path(out)

@@ -37,6 +37,7 @@ class Scenario:
     stills_offset_ns: int = 0  # time of the first still after t0_ns, ns
     phone: PhoneCamera | None = None  # rolling shutter, blur, exposure, clock offset (None: the default camera)
     imu_errors: ImuErrors | None = None  # scale factors, misalignment, timestamp jitter (None: none)
+    real_imu: dict | None = None  # a real IMU recording written instead of a simulated one (`vio.sim.real_imu`)
 
     def frame_times_ns(self) -> np.ndarray:
         """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples).

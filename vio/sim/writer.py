@@ -61,6 +61,8 @@ def scene_yaml_text(sc: Scenario) -> str:
         }
     if sc.imu_errors is not None:
         meta["imu_errors"] = sc.imu_errors.yaml_dict()
+    if sc.real_imu is not None:
+        meta["real_imu"] = sc.real_imu
     return "# vio simulated scene (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False)
 
 
