@@ -57,8 +57,17 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         mars=args.mars,
         **real,
         **phone,
+        **_phases(args),
     )
     return 0
+
+
+def _phases(args: argparse.Namespace) -> dict:
+    """`phases=` for simulate when a still start, excitation or still end is asked for (else nothing)."""
+    from vio.sim.phases import PhasedMotion
+
+    phases = PhasedMotion(args.still_start, args.excite, args.still_end)
+    return {"phases": phases} if phases.active else {}
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -194,6 +203,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="the real IMU's noise (Kalibr IMU YAML or ASL sensor.yaml; default: sensor.yaml beside --real-imu)",
     )
     p.add_argument("--start", type=float, metavar="S", help="start this many seconds into a trajectory file")
+    p.add_argument(
+        "--still-start", type=float, default=0.0, metavar="S", help="hold the phone still this long before moving"
+    )
+    p.add_argument(
+        "--excite",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="then shake it this long in all directions (about 2 Hz, 5.6 m/s^2 RMS: makes the scale observable)",
+    )
+    p.add_argument("--still-end", type=float, default=0.0, metavar="S", help="hold it still this long at the end")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")

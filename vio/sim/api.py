@@ -3,7 +3,8 @@
 Seeds are split by stream with `np.random.SeedSequence(seed).spawn(7)`: trajectory (motion phases), IMU (noise
 and biases), image noise, scene (textures), stills noise, the phone IMU's scale factors and misalignment, and its
 timestamp jitter (the first four are those of the earlier `spawn(4)` and the first five those of `spawn(5)`, so
-adding a stream changed no other stream). The same seed gives byte-identical files.
+adding a stream changed no other stream); an eighth, `spawn(8)[7]`, shakes the `--excite` phase. The same seed
+gives byte-identical files.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from vio.sim import rig, scenarios
 from vio.sim.definitions import read_definition
 from vio.sim.imu import PhoneImu, grade_by_name, imu_calib, simulate_imu
 from vio.sim.parts import build_part
+from vio.sim.phases import PhasedMotion, phased
 from vio.sim.phone import KNOBS_ONLY, PhoneCamera, portrait_camera
 from vio.sim.scenario import Scenario
 from vio.sim.scene import SURFACES
@@ -32,6 +34,11 @@ log = logging.getLogger(__name__)
 
 BUILTIN = ("orbit", "figure8", "room", "static")
 DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0, "static": 3600.0}
+
+
+def _phases_stream(seed: int) -> np.random.SeedSequence:
+    """The excitation's phases: an eighth stream (the first seven, and so every default capture, unchanged)."""
+    return np.random.SeedSequence(seed).spawn(8)[7]
 
 
 def _streams(seed: int) -> list[np.random.SeedSequence]:
@@ -55,6 +62,7 @@ def load_scenario(
     phone_imu: PhoneImu | None = None,
     start_s: float = 0.0,
     file_clock: bool = False,
+    phases: PhasedMotion | None = None,
 ) -> Scenario:
     """Build a scenario by name (`orbit`, `figure8`, `room`), from a scenario YAML (`data/synthetic/*.yaml`), or
     from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses.
@@ -65,7 +73,9 @@ def load_scenario(
     (`vio.sim.phone`; None: the default global-shutter camera), `imu_rate_hz` the IMU rate (None: 200 Hz) and
     `phone_imu` the magnitudes of the IMU's scale-factor, misalignment and timestamp errors (None: none).
     `start_s` (trajectory files only) starts the capture that many seconds into the trajectory; a trajectory
-    file's own clock is kept when its times are epoch-sized or `file_clock` (a real IMU on that clock)."""
+    file's own clock is kept when its times are epoch-sized or `file_clock` (a real IMU on that clock).
+    `phases` (`vio.sim.phases`) adds a still start, brisk excitation and a still end around the scenario's motion:
+    `duration_s` is then the motion's length and the capture lasts `phases.total_s(duration_s)`."""
     if surface not in SURFACES:
         raise SimulationError(f"surface must be one of {', '.join(SURFACES)}, got {surface!r}")
     the_part = build_part(part, part_units)
@@ -131,6 +141,12 @@ def load_scenario(
     if span is not None and dur > span + 1e-9:
         raise SimulationError(f"{name}: duration {dur:g} s is longer than the trajectory ({span:.3f} s)")
     grade = grade_by_name(imu_grade_name)
+    motion_s = None
+    if phases is not None:
+        phases.validate()
+    if phases is not None and phases.active:
+        traj_fn = phased(traj_fn, phases, dur, np.random.default_rng(_phases_stream(seed)))
+        motion_s, dur = dur, phases.total_s(dur)
     return Scenario(
         name=name,
         seed=seed,
@@ -147,6 +163,8 @@ def load_scenario(
         stills_offset_ns=rig.STILLS_OFFSET_NS,
         phone=phone,
         imu_errors=None if phone_imu is None else phone_imu.draw(np.random.default_rng(ss_imu_errors)),
+        phases=phases if motion_s is not None else None,
+        motion_s=motion_s,
     )
 
 
@@ -227,7 +245,7 @@ def simulate(
     writes the capture as a MARS logger folder with H.264 video (`vio.writers.mars`). `real_imu` (an EuRoC/ASL
     `imu0/data.csv` on the trajectory file's clock) replaces the simulated IMU with the recording's samples, its
     noise from `real_imu_calib` or the `sensor.yaml` beside it (`vio.sim.real_imu`); `scene` may then also hold
-    `start_s`, the start within the trajectory.
+    `start_s`, the start within the trajectory. `scene` may also hold `phases` (`vio.sim.phases`).
     """
     board = scene.pop("board", None)
     motion = scene.pop("calibration_motion", None)
@@ -235,8 +253,11 @@ def simulate(
         from vio.sim.calibration import DEFAULT_BOARD, simulate_calibration
 
         offset_s = _calibration_time_offset(scene.pop("phone", None))
-        if {"phone_imu", "imu_rate_hz"} & set(scene) or mars is not None:
-            raise SimulationError("--camera, --imu-rate and --mars are not available for the calibration scenario")
+        if {"phone_imu", "imu_rate_hz", "phases"} & set(scene) or mars is not None:
+            raise SimulationError(
+                "--camera, --imu-rate, --mars and the still/excite phases are not available for the calibration "
+                "scenario"
+            )
         return simulate_calibration(
             out,
             board or DEFAULT_BOARD,
@@ -299,6 +320,8 @@ def _simulate_real_imu(
         raise SimulationError("--real-imu needs a trajectory file scenario (EuRoC CSV or TUM) on the IMU's clock")
     if {"phone_imu", "imu_rate_hz"} & set(scene):
         raise SimulationError("--real-imu replaces the simulated IMU: --imu-rate and the phone IMU do not apply")
+    if "phases" in scene:
+        raise SimulationError("--real-imu records the real motion: the still/excite phases cannot be added to it")
     real = load_real_imu(real_imu, real_imu_calib)
     sc = load_scenario(scenario, seed, duration_s, "ideal", file_clock=True, **scene)
     imu = imu_window(real, sc.t0_ns, sc.duration_s)

@@ -13,6 +13,7 @@ import numpy as np
 
 from vio.records import CameraCalib, ImuCalib
 from vio.sim.imu import ImuErrors
+from vio.sim.phases import PhasedMotion
 from vio.sim.phone import PhoneCamera, frame_times
 from vio.sim.scene import Scene
 from vio.sim.trajectory import Trajectory
@@ -38,6 +39,8 @@ class Scenario:
     phone: PhoneCamera | None = None  # rolling shutter, blur, exposure, clock offset (None: the default camera)
     imu_errors: ImuErrors | None = None  # scale factors, misalignment, timestamp jitter (None: none)
     real_imu: dict | None = None  # a real IMU recording written instead of a simulated one (`vio.sim.real_imu`)
+    phases: PhasedMotion | None = None  # still start, excitation, still end around the motion (None: none)
+    motion_s: float | None = None  # the scenario's own motion, s (duration_s less the phases; None: all of it)
 
     def frame_times_ns(self) -> np.ndarray:
         """(F,) camera frame times, ns: t0 + k / rate for k / rate < duration (they coincide with IMU samples).

@@ -63,6 +63,8 @@ def scene_yaml_text(sc: Scenario) -> str:
         meta["imu_errors"] = sc.imu_errors.yaml_dict()
     if sc.real_imu is not None:
         meta["real_imu"] = sc.real_imu
+    if sc.phases is not None and sc.motion_s is not None:
+        meta["phases"] = {"motion_s": float(sc.motion_s), **sc.phases.as_dict(sc.motion_s)}
     return "# vio simulated scene (ground truth)\n" + yaml.safe_dump(meta, sort_keys=False)
 
 
