@@ -32,7 +32,7 @@ from typing import Any
 from vio.errors import ConfigError
 
 SUITE_DIR = Path(__file__).resolve().parent / "suite_files"
-SUITES = ("tiny", "quick", "full", "drift60", "model", "parts", "scale")  # the packaged suites
+SUITES = ("tiny", "quick", "full", "drift60", "model", "parts", "scale", "scale60")  # the packaged suites
 PARTS = ("cube", "cube_features", "freeform")
 ROOT = Path(__file__).resolve().parents[2]
 SHARED = ROOT.parent / "shared"
@@ -45,10 +45,19 @@ class Case:
     scenario: str  # orbit | figure8 | room | a trajectory file path
     seed: int
     imu: str  # phone | tactical | ideal
-    duration_s: float  # capture length, s
+    duration_s: float  # the scenario's motion, s (the capture's length without the phases below)
     images: bool = True  # render the camera (False: IMU and ground truth only, for IMU-only suites)
     part: str = "cube"  # the part on the table (vio.sim.parts: cube, cube_features, freeform)
     stills_hz: float = 0.0  # full-resolution stills stream (cam1) for the part model; 0: none
+    still_start_s: float = 0.0  # capture phases (vio.sim.phases): held still before the motion, s
+    excite_s: float = 0.0  # then shaken in all directions, s
+    still_end_s: float = 0.0  # held still after it, s
+
+    @property
+    def phases(self) -> dict[str, float]:
+        """`vio.sim.api.simulate`'s phase lengths when any is set, else {}."""
+        p = (self.still_start_s, self.excite_s, self.still_end_s)
+        return dict(zip(("still_start_s", "excite_s", "still_end_s"), p, strict=True)) if any(p) else {}
 
     @property
     def key(self) -> str:
@@ -57,7 +66,10 @@ class Case:
         key = f"{name}_{self.imu}_s{self.seed}_{self.duration_s:g}s" + ("" if self.images else "_noimg")
         if self.part != "cube":
             key += f"_{self.part}"
-        return key + (f"_stills{self.stills_hz:g}hz" if self.stills_hz > 0 else "")
+        key += f"_stills{self.stills_hz:g}hz" if self.stills_hz > 0 else ""
+        if self.phases:
+            key += f"_still{self.still_start_s:g}+{self.still_end_s:g}s_excite{self.excite_s:g}s"
+        return key
 
     @property
     def label(self) -> str:
@@ -96,9 +108,11 @@ MODEL_SEEDS = [101, 102, 103, 104, 105]  # seeds no test uses (suite_files/model
 
 CASE_FIELDS = {f.name: f.type for f in fields(Case)}
 METHOD_FIELDS = {f.name for f in fields(Method)}
-GRID_ORDER = ("scenario", "imu", "seed", "duration_s", "part", "stills_hz", "images")
+GRID_ORDER = ("scenario", "imu", "seed", "duration_s", "part", "stills_hz", "still_start_s", "excite_s",
+              "still_end_s", "images")  # fmt: skip
 _TYPES: dict[str, type] = {"scenario": str, "seed": int, "imu": str, "duration_s": float, "images": bool,
-                           "part": str, "stills_hz": float}  # fmt: skip
+                           "part": str, "stills_hz": float, "still_start_s": float, "excite_s": float,
+                           "still_end_s": float}  # fmt: skip
 
 
 def _value(where: str, key: str, v: Any) -> Any:

@@ -135,7 +135,9 @@ def main(task_path: str) -> int:
     try:
         if task["kind"] == "simulate":
             from vio.sim.api import simulate
+            from vio.sim.phases import PhasedMotion
 
+            phases = {"phases": PhasedMotion(**case.phases)} if case.phases else {}
             simulate(
                 case.scenario,
                 task["capture"],
@@ -145,6 +147,7 @@ def main(task_path: str) -> int:
                 overwrite=True,
                 images=case.images,
                 **({"part": case.part, "stills_hz": case.stills_hz} if case.stills_hz > 0 else {}),
+                **phases,
             )
             result = {"capture": task["capture"]}
         else:

@@ -56,7 +56,7 @@ def _python_suites() -> dict:
     }
 
 
-@pytest.mark.parametrize("name", [s for s in SUITES if s != "scale"])
+@pytest.mark.parametrize("name", [s for s in SUITES if s not in ("scale", "scale60")])
 def test_packaged_suites_keep_their_cases_and_methods(name):
     cases, methods, plots = _python_suites()[name]
     suite = get_suite(name)
@@ -67,6 +67,17 @@ def test_scale_suite_uses_held_out_seeds():
     scale = get_suite("scale")
     assert len(scale.cases) == 21 and {c.seed for c in scale.cases} == set(range(301, 308))
     assert {c.scenario for c in scale.cases} == {"orbit", "figure8", "room"} and scale.methods == (VIO_AND_BATCH,)
+
+
+def test_scale60_suite_pairs_each_seed_with_and_without_the_phases():
+    cases = get_suite("scale60").cases
+    plain = [c for c in cases if not c.phases]
+    phased = [c for c in cases if c.phases]
+    assert [c.seed for c in plain] == [c.seed for c in phased] == list(range(311, 321))
+    assert phased[0].phases == {"still_start_s": 3.0, "excite_s": 5.0, "still_end_s": 3.0}
+    assert all(c.scenario == "orbit" and c.duration_s == 60.0 and c.imu == "phone" for c in cases)
+    assert phased[0].key == "orbit_phone_s311_60s_still3+3s_excite5s" and plain[0].key == "orbit_phone_s311_60s"
+    assert len({c.key for c in cases}) == 20
 
 
 def test_model_method_fields_survive_yaml():
@@ -113,6 +124,27 @@ def test_a_bad_suite_file_is_one_line(tmp_path, text, message):
 
 def test_unknown_suite_names_the_known_ones():
     with pytest.raises(
-        ConfigError, match="unknown benchmark suite 'nope'; known: drift60, full, model, parts, quick, scale"
+        ConfigError, match="unknown benchmark suite 'nope'; known: drift60, full, model, parts, quick, scale, scale60"
     ):
         get_suite("nope")
+
+
+def test_the_bench_worker_simulates_a_case_with_its_phases(tmp_path):
+    """The worker's simulate task passes the case's phases on (IMU and ground truth only, a 1 s orbit)."""
+    import dataclasses
+    import json
+
+    import yaml
+
+    from vio.bench.worker import main as worker_main
+
+    case = Case("orbit", 311, "ideal", 1.0, images=False, still_start_s=1.0, excite_s=2.0)
+    task = tmp_path / "task" / "task.json"
+    task.parent.mkdir()
+    capture = tmp_path / "cap"
+    task.write_text(json.dumps({"kind": "simulate", "case": dataclasses.asdict(case), "capture": str(capture)}))
+    assert worker_main(str(task)) == 0
+    result = json.loads((task.parent / "result.json").read_text())
+    assert "error" not in result, result
+    phases = yaml.safe_load((capture / "scene" / "scene.yaml").read_text())["phases"]
+    assert phases["still_start_s"] == 1.0 and phases["excite_s"] == 2.0 and phases["motion_s"] == 1.0
