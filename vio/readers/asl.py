@@ -172,6 +172,8 @@ def open_asl(root: Path, calib: str | Path | None = None, problems: list[str] | 
         return cap
     if cal is None:
         return cap
+    for w in cal.warnings:
+        cap.warn(w)
     cap.camera = cal.camera
     if cal.imu is not None:
         cap.imu_calib = cal.imu

@@ -1,11 +1,15 @@
 """Calibration for captures that do not carry their own: where it is found, and presets when there is none.
 
-Accepted `--calib` values (and files found beside a capture, see `find_calibration`), all read by `vio.kalibr`:
+Accepted `--calib` values (and files found beside a capture, see `find_calibration`), read by `vio.kalibr` or, for
+OpenCV FileStorage files, by `vio.readers.opencv_calib`:
 - a Kalibr camchain (`cam0:` with `intrinsics`, `distortion_coeffs` radtan, `resolution`, `T_cam_imu`, optional
   `timeshift_cam_imu` [s], defined by Kalibr as t_imu = t_cam + shift); the same file may carry an `imu0:` section
   with the Kalibr noise keys, otherwise a Kalibr IMU YAML beside it (`imu.yaml`, `*imu*.yaml`) is used;
 - an ASL/EuRoC folder (or its `mav0/`) with `cam0/sensor.yaml` and `imu0/sensor.yaml`;
-- an ASL `sensor.yaml` of the camera itself.
+- an ASL `sensor.yaml` of the camera itself;
+- a file written by OpenCV's `FileStorage` (`%YAML:1.0`, `!!opencv-matrix`): OpenCV's calibration sample output
+  (`camera_matrix`, `distortion_coefficients`) or an ORB-SLAM2/ORB-SLAM3 settings file (`Camera.fx ...`, `Tbc` /
+  `IMU.T_b_c1` as body_T_cam, `IMU.Noise*`).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ class Calibration:
     imu: ImuCalib | None
     timeshift_cam_imu_ns: int = 0  # Kalibr: t_imu = t_cam + shift; added to frame times, ns
     source: Path | None = None
+    warnings: tuple[str, ...] = ()  # what was assumed or dropped while reading it; carried into Capture.warnings
 
 
 def _sibling_imu_yaml(path: Path) -> ImuCalib | None:
@@ -85,14 +90,41 @@ def load_calibration(path: str | Path) -> Calibration:
     if path.is_dir():
         for name in CALIB_NAMES:
             if (path / name).is_file():
-                return read_camchain(path / name)
+                return read_calibration_file(path / name)
         return read_asl_calibration(path)
+    if _is_opencv_file(path):
+        from vio.readers.opencv_calib import read_opencv_calibration
+
+        return read_opencv_calibration(path)
     data = read_yaml(path)
     if "cam0" in data:
         return read_camchain(path)
     if "intrinsics" in data:
         return Calibration(read_camera_yaml(path), None, 0, path)
-    raise CalibrationError(f"{path}: neither a Kalibr camchain (cam0:) nor an ASL camera sensor.yaml (intrinsics:)")
+    raise CalibrationError(
+        f"{path}: neither a Kalibr camchain (cam0:), an ASL camera sensor.yaml (intrinsics:), nor an OpenCV/ORB-SLAM "
+        "calibration (camera_matrix: / Camera.fx:)"
+    )
+
+
+def _is_opencv_file(path: Path) -> bool:
+    """Whether a calibration file was written by OpenCV's FileStorage (`vio.readers.opencv_calib`)."""
+    from vio.readers.opencv_calib import is_opencv_calibration
+
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return False  # read_yaml names the problem
+    return is_opencv_calibration(text)
+
+
+def read_calibration_file(path: Path) -> Calibration:
+    """A calibration file stored beside a capture: a Kalibr camchain or an OpenCV/ORB-SLAM FileStorage file."""
+    if _is_opencv_file(path):
+        from vio.readers.opencv_calib import read_opencv_calibration
+
+        return read_opencv_calibration(path)
+    return read_camchain(path)
 
 
 def find_calibration(folder: Path) -> Calibration | None:
@@ -100,7 +132,7 @@ def find_calibration(folder: Path) -> Calibration | None:
     folder = Path(folder)
     for name in CALIB_NAMES:
         if (folder / name).is_file():
-            return read_camchain(folder / name)
+            return read_calibration_file(folder / name)
     found = sorted(folder.glob("*camchain*.yaml"))
     return read_camchain(found[0]) if found else None
 

@@ -120,7 +120,7 @@ def make_capture(
         load_image=load,
         format=fmt,
     )
-    for w in warnings:
+    for w in [*warnings, *(cal.warnings if cal is not None else ())]:
         cap.warn(w)
     if shift:
         log.info("frame times shifted by timeshift_cam_imu = %.3f ms", shift * 1e-6)

@@ -7,7 +7,9 @@ accelerometer interpolated onto the gyro times by the app), `movie_metadata.csv`
 `frame_timestamps.txt`; frame times are the first column of `movie_metadata.csv`, and timestamps are in seconds
 when the header says `[sec]`. Calibration: `--calib`, or `calib.yaml` in the folder. The video is decoded by PyAV
 (FFmpeg's H.264/HEVC decoders) in the sensor's orientation, which the calibration describes; a portrait
-recording's display rotation is not applied (`vio.readers.video_av`).
+recording's display rotation is not applied (`vio.readers.video_av`). Without a calibration, the logged
+per-frame `fx, fy` of `movie_metadata.csv` give an approximate camera, with a warning
+(`vio.readers.logged_intrinsics`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 from vio.capture import Capture
 from vio.errors import CaptureError
 from vio.readers.common import collect, frame_times, imu_from_table, make_capture, no_frames, resolve_calibration
+from vio.readers.logged_intrinsics import logged_calibration
 from vio.readers.tables import read_lines, read_table
 from vio.readers.video import VideoFrames, find_video, match_frame_count
 from vio.readers.video_av import AvVideoFrames, av_available
@@ -49,9 +52,11 @@ def read_mars(folder: Path, calib: str | Path | None = None, problems: list[str]
     folder = Path(folder)
     warnings: list[str] = []
     imu = collect(lambda: _imu(folder, warnings), None, problems)
-    empty = (np.zeros(0, np.int64), no_frames(folder, "the frames could not be read"))
-    ft, load = collect(lambda: _frames(folder, warnings), empty, problems)
+    empty = (np.zeros(0, np.int64), no_frames(folder, "the frames could not be read"), (0, 0))
+    ft, load, (width, height) = collect(lambda: _frames(folder, warnings), empty, problems)
     cal = collect(lambda: resolve_calibration(folder, calib), None, problems)
+    if cal is None and calib is None:  # no calibration anywhere: the logger's own intrinsics, with a warning
+        cal = collect(lambda: logged_calibration(folder, width, height, ft, warnings), None, problems)
     return make_capture(folder, "mars", cal, imu, ft, load, warnings)
 
 
@@ -62,7 +67,8 @@ def _imu(folder: Path, warnings: list[str]) -> ImuSeries:
     return imu_from_table(table, warnings)
 
 
-def _frames(folder: Path, warnings: list[str]) -> tuple[np.ndarray, Callable[[int], np.ndarray]]:
+def _frames(folder: Path, warnings: list[str]) -> tuple[np.ndarray, Callable[[int], np.ndarray], tuple[int, int]]:
+    """Frame times, the frame loader and the video's (width, height) in px as decoded."""
     times = folder / "frame_timestamps.txt"
     if not times.is_file():
         times = folder / "movie_metadata.csv"
@@ -80,7 +86,7 @@ def _frames(folder: Path, warnings: list[str]) -> tuple[np.ndarray, Callable[[in
     n = match_frame_count(video, len(table), times, warnings)
     table = table.select(slice(0, n))
     ft, idx = frame_times(table, warnings)
-    return ft, lambda i: video(int(idx[i]))
+    return ft, lambda i: video(int(idx[i])), (int(video.width), int(video.height))
 
 
 READOUT_COLUMN = "frame readout time[nanosec]"
