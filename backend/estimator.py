@@ -36,6 +36,7 @@ from backend.recovery import Recovery
 from backend.reidentification import Reidentification
 from backend.segments import TrackSegments
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
+from backend.time_offset import CameraTiming
 from backend.uncertainty import ScaleUncertainty, scale_uncertainty
 from backend.vision_only import VisionOnlyMotion
 from vio.config import Config
@@ -69,6 +70,7 @@ class VioEstimator:
             3 * max(cfg.landmarks.max_track_keyframes, 10),
             self._warn,
         )
+        self.timing = CameraTiming(cfg.camera, camera, imu, self.state, self.use_imu)
         self.book = LandmarkBook(camera.K, camera.body_T_cam, cfg.landmarks)
         self.admission = LandmarkAdmission(self.book, self.state, cfg.landmarks.prior_sigma_m)
         self.segments = TrackSegments(cfg.landmarks.max_track_keyframes)
@@ -122,15 +124,20 @@ class VioEstimator:
 
     # ----------------------------------------------------------------- public
     def add_keyframe(self, t_ns: int, tracks: FeatureTracks, describe: Describe | None = None) -> list[StateEstimate]:
-        """Add a keyframe (tracks in distorted pixels); returns the estimates produced (several after the start).
+        """Add a keyframe (tracks in distorted pixels, `t_ns` the frame's camera time); returns the estimates
+        produced (several after the start). The keyframe's pose is placed in IMU time and each view moved to it
+        (backend/time_offset.py: the camera-IMU offset and the rolling shutter).
 
         `describe` (frontend.descriptors.KeyframeDescriber.describe of the keyframe image) enables landmark
         re-identification (backend/reidentification.py); without it every new track is a new landmark.
         """
         st = self.state
         k = 0 if st.last_k is None else st.last_k + 1
-        st.t_ns[k] = int(t_ns)
-        uv = fb.undistorted_px(self.camera, tracks.uv)
+        t_ns = self.timing.pose_time_ns(t_ns)
+        if st.last_k is not None and t_ns <= st.t_ns[st.last_k]:
+            raise ValueError(f"keyframe time {t_ns} ns is not after the previous keyframe's ({st.t_ns[st.last_k]} ns)")
+        st.t_ns[k] = t_ns
+        uv = self.timing.correct(tracks, fb.undistorted_px(self.camera, tracks.uv))
         if st.last_k is not None and self.use_imu:
             pre = self.preintegrate(st.t_ns[st.last_k], t_ns, st.bias)
             st.pims[k] = pre.pim
@@ -141,14 +148,18 @@ class VioEstimator:
         if self.initialised and describe is not None:
             ids = self.reidentification.reidentify(prev, k, ids, uv, tracks.uv, describe)
         self.book.observe(k, ids, uv)
+        self.timing.placed(k, ids, uv)
         if not self.initialised:
             start = self.initialiser.add(k)
             return [] if start is None else self._started(start)
-        return [self._step(prev, k, ids)]
+        state = self._step(prev, k, ids)
+        self.timing.after_step(k)
+        return [state]
 
     def _started(self, start: Start) -> list[StateEstimate]:
         self._init_kind = start.kind
         self._timings_ms.append(start.solve_ms)
+        self.timing.after_start(list(start.keyframes))
         return [self.state.state(k, start.solve_ms, self.use_imu) for k in start.keyframes]
 
     def finish(self, refine: bool = False) -> dict[str, Any]:
@@ -222,6 +233,7 @@ class VioEstimator:
             keyframe_projections=tuple(
                 (k, t, self.state.projections.get(k, 0)) for k, t in sorted(self.state.t_ns.items())
             ),
+            time_offset=self.timing.report(),
         )
 
     # ----------------------------------------------------------------- steady state

@@ -48,6 +48,18 @@ class KeyframeConfig:
 
 
 @dataclass(frozen=True)
+class CameraConfig:
+    """The camera's timing (issue 16; backend/time_offset.py): rolling shutter and the camera-IMU time offset."""
+
+    readout_s: float = 0.0  # rolling-shutter readout, top to bottom row, s (0: global shutter; < 0: the capture's own)
+    time_offset_s: float = 0.0  # t_imu = t_cam + offset (top row), on top of a calibration's timeshift_cam_imu, s
+    estimate_time_offset: bool = False  # estimate the offset from the start window, then online
+    time_offset_window: int = 100  # keyframe pairs in the online estimate (older pairs' estimates are forgotten)
+    time_offset_lag: int = 2  # a pair: a keyframe and the one this many keyframes before it
+    time_offset_settle: int = 10  # a pair is read this many keyframes after its later keyframe entered the graph
+
+
+@dataclass(frozen=True)
 class ImuConfig:
     max_gap_s: float = 0.05  # an IMU gap longer than this between samples is reported
     integration_sigma: float = 1e-4  # sigma of the position-integration error (gtsam cov = sigma^2), m/sqrt(s)
@@ -162,6 +174,7 @@ class HealthConfig:
 class Config:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     smoother: SmootherConfig = field(default_factory=SmootherConfig)

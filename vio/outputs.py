@@ -174,6 +174,28 @@ def run_summary(
     }
 
 
+def camera_timing(stats: EstimatorStats, readout_source: str) -> dict[str, Any]:
+    """run.json `camera_timing`: the rolling-shutter readout used and the camera-IMU time offset (t_imu = t_cam +
+    offset, top row, on top of a calibration's timeshift_cam_imu), fixed or estimated, with its standard error."""
+    to = stats.time_offset
+    if to is None:
+        return {}
+    return {
+        "readout_s": to.readout_s,
+        "readout_source": readout_source,
+        "time_offset_s": to.value_s,
+        "time_offset_method": (
+            "estimated: keyframe rotations from the images (PnP) against the gyro, start window then online"
+            if to.estimated
+            else "fixed: camera.time_offset_s"
+        ),
+        "time_offset_sigma_s": to.sigma_s,
+        "time_offset_initial_s": to.initial_s,
+        "time_offset_after_initialisation_s": to.after_initialisation_s,
+        "time_offset_keyframes": to.num_keyframes,
+    }
+
+
 def write_estimate(
     out: Path,
     states: list[StateEstimate],

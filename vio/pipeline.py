@@ -27,6 +27,7 @@ from backend.uncertainty import motion_excitation, scale_advice
 from frontend.descriptors import KeyframeDescriber
 from frontend.keyframes import KeyframeSelector
 from frontend.preintegration import ImuPreintegrator
+from frontend.track_velocity import TrackVelocity
 from vio import outputs
 from vio.atomic import ensure_dir
 from vio.capture import Capture
@@ -88,11 +89,12 @@ Tracked = tuple[Frame | None, FeatureTracks, np.ndarray]  # (frame or None, trac
 def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor) -> Iterator[Tracked]:
     """Yield (frame or None, tracks, ages) for every frame: from the tracker, or the capture's own tracks. A frame
     whose image fails to decode (or has the wrong size) is skipped with a warning and counted by `monitor`."""
+    velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
     if cap.tracks is not None:
         first_seen: dict[int, int] = {}
         for i, tr in enumerate(cap.tracks[:stop]):
             ages = np.array([i - first_seen.setdefault(int(j), i) for j in tr.ids], np.int64)
-            yield None, tr, ages
+            yield None, velocity.add(tr), ages
         return
     from frontend.tracker import FeatureTracker
 
@@ -105,7 +107,7 @@ def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMoni
             log.warning("frame %d (t=%d ns) skipped: %s", i, t_ns, exc)
             monitor.skip(t_ns, str(exc))
             continue
-        tracks = tracker.track(frame)
+        tracks = velocity.add(tracker.track(frame))
         yield frame, tracks, tracker.ages()
 
 
@@ -206,6 +208,7 @@ def _run(
 
         known = read_positions(positions)
     refine = cfg.run.refine  # the batch refinement is decided by the config only
+    cfg, readout_source = _with_readout(cap, cfg)
     for sink in sinks:
         sink.on_start(cap.camera, cap.imu, cap.ground_truth)
     pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
@@ -273,6 +276,7 @@ def _run(
         health,
     )
     summary["scale"].update(_scale_advice(cap, stats, states, gravity_frame=positions is None))
+    summary["camera_timing"] = outputs.camera_timing(stats, readout_source)
     result = RunResult(out, summary, stats, states, landmarks)
     if failure:
         outputs.write_run_json(out / "run.json", summary)
@@ -292,6 +296,23 @@ def _run(
     if summary["scale"].get("advice"):
         log.info("%s", summary["scale"]["advice"])
     return result, None
+
+
+def _with_readout(cap: Capture, cfg: Config) -> tuple[Config, str]:
+    """The config with the rolling-shutter readout to use, and where it came from: `config` (camera.readout_s >= 0),
+    or with camera.readout_s < 0 the capture's own (a MARS folder's movie_metadata.csv), else 0 (global shutter)."""
+    if cfg.camera.readout_s >= 0:
+        return cfg, "config"
+    readout_s, source = 0.0, "none: global shutter"
+    if cap.format == "mars":
+        from vio.readers.mars import readout_ns
+
+        got = readout_ns(cap.root)
+        if got:
+            readout_s, source = got * 1e-9, "capture: movie_metadata.csv"
+    if readout_s > 0:
+        log.info("rolling shutter: readout %.2f ms (%s)", readout_s * 1e3, source)
+    return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, readout_s=readout_s)), source
 
 
 def _scale_advice(

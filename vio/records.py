@@ -59,6 +59,9 @@ class FeatureTracks:
     ids: np.ndarray  # (N,) int64 track ids, stable across frames
     uv: np.ndarray  # (N, 2) float64 pixel coordinates in the *distorted* image, px
     cam_id: int = 0
+    # (N, 2) image velocity of each track, distorted px/s (backward difference to the previous frame, 0 for a new
+    # track; frontend/track_velocity.py); None when not measured
+    uv_per_s: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -215,6 +218,20 @@ class RecoveryEvent:
 
 
 @dataclass(frozen=True)
+class TimeOffsetEstimate:
+    """The camera-IMU time offset the estimator used (t_imu = t_cam + offset; the top row's mid-exposure, on top of a
+    calibration's timeshift_cam_imu already applied to the frame times) and how it was obtained."""
+
+    estimated: bool  # True: estimated by the estimator (backend/time_offset.py); False: fixed by the config
+    value_s: float  # the offset at the end of the run, s
+    initial_s: float  # the config's starting value, s
+    after_initialisation_s: float | None  # the estimate from the start window, s (None: not estimated there)
+    sigma_s: float | None  # standard error of the estimate from the scatter of per-keyframe estimates, s
+    num_keyframes: int  # keyframes whose residuals went into the estimate
+    readout_s: float  # rolling-shutter readout used (0: global shutter), s
+
+
+@dataclass(frozen=True)
 class EstimatorStats:
     """What the estimator reports about a run (counts, timings, events); `run.json` is built from it."""
 
@@ -236,3 +253,4 @@ class EstimatorStats:
     # (k, t_ns, projection factors on the keyframe's pose in the whole graph) per keyframe, in time order; 0: the
     # keyframe's pose rests on the IMU (or the vision-only motion model) alone
     keyframe_projections: tuple[tuple[int, int, int], ...] = ()
+    time_offset: TimeOffsetEstimate | None = None  # the camera-IMU time offset and readout (backend/time_offset.py)

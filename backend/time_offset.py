@@ -1,0 +1,226 @@
+"""The camera's timing in the estimator (issue 16): rolling shutter and the camera-IMU time offset.
+
+Convention (Kalibr's `timeshift_cam_imu`): t_imu = t_cam + offset, the offset of the top row's mid-exposure; a
+rolling-shutter camera reads row v of H `readout * v / H` after the top row. A keyframe's pose is placed at the
+IMU time of its image's centre row, `t_cam + offset + readout / 2` (for a global-shutter camera, readout 0, at
+`t_cam + offset`; with the default offset 0 the frame time itself, so nothing changes). Each observation is moved
+from its row's time to that pose time with the track's image velocity (VINS-Mono's feature-velocity correction):
+`uv - readout * (v / H - 1/2) * velocity`.
+
+The offset is estimated (`camera.estimate_time_offset`) from rotations: keyframe poses placed `d` seconds from
+where the images really were turn, between keyframes i and j, by what the gyro turned over the interval shifted by
+`d`, which differs from what it turned over the placed interval by `Log(dR_gyro^T R_i^T R_j) = d (w_j - dR_gyro^T
+w_i)` to first order (w the bias-corrected gyro at each end, dR_gyro its integral over the placed interval). Each
+keyframe that has settled (`time_offset_settle` keyframes after it entered the graph) is paired with the keyframe
+`time_offset_lag` before it; least squares over the pairs gives `d`, and the offset it was placed with plus `d` is
+that pair's estimate; the start window gives the first one (at initialisation). The offset is the weighted mean of
+the last `time_offset_window` pairs' estimates and is applied to the keyframes that follow. The smoother's
+rotations are a compromise between the images and the gyro, so each pair's `d` is short of the whole error (about a
+third on the orbit); the loop's fixed point is where the pairs no longer see a shift, the true offset. The
+projection residuals hold much less of it: the poses absorb the shift there (about 3 % on the orbit).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from backend.graph_state import GraphState
+from backend.keys import B, L, X
+from vio.config import CameraConfig
+from vio.records import CameraCalib, FeatureTracks, ImuSeries, TimeOffsetEstimate
+
+MIN_PNP_POINTS = 12  # a keyframe with fewer landmarks in view gives no visual rotation
+GATE_PX = 3.0  # views further than this from the smoother's projection are left out of the visual rotation, px
+RATE_HALF_WINDOW_S = 0.02  # the gyro rate at a keyframe is its mean over this much either side, s
+MIN_RATE_CHANGE = 0.005  # rad/s: a pair whose ends turn at (almost) the same rate gives no estimate
+MAX_STEP_S = 0.002  # the offset applied to the next keyframe moves by at most this much per keyframe, s
+_H_S = 0.01  # step of the finite difference that maps a distorted pixel velocity to an undistorted one, s
+
+
+class CameraTiming:
+    """Places keyframe poses in IMU time and moves each observation to its pose's time; estimates the offset."""
+
+    def __init__(
+        self, cfg: CameraConfig, camera: CameraCalib, imu: ImuSeries, state: GraphState, enabled: bool
+    ) -> None:
+        self.cfg, self.camera, self.imu, self.state = cfg, camera, imu, state
+        self.readout_s = max(float(cfg.readout_s), 0.0)
+        self.estimating = bool(cfg.estimate_time_offset) and enabled
+        self.offset_s = float(cfg.time_offset_s)
+        self._after_start: float | None = None
+        self._placed: dict[int, float] = {}  # keyframe -> the offset its pose was placed with, s
+        self._views: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe -> landmark ids, corrected pixels
+        self._estimates: deque[tuple[float, float]] = deque(maxlen=max(int(cfg.time_offset_window), 1))
+        self._used = 0
+        self.history: list[tuple[int, float, float]] = []  # (k, that keyframe's estimate s, offset after it s)
+
+    # ----------------------------------------------------------------- placing and correcting
+    def pose_time_ns(self, t_cam_ns: int) -> int:
+        """IMU time of the pose of a frame stamped t_cam_ns (its centre row's mid-exposure)."""
+        return int(t_cam_ns) + int(round((self.offset_s + 0.5 * self.readout_s) * 1e9))
+
+    def correct(self, tracks: FeatureTracks, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) undistorted pixels `uv` of `tracks` moved from each row's time to the pose time."""
+        if self.readout_s <= 0.0:
+            return uv
+        vel = self.undistorted_velocity(tracks)
+        dt_s = self.readout_s * (np.asarray(tracks.uv, float)[:, 1] / self.camera.height - 0.5)
+        return uv - dt_s[:, None] * vel
+
+    def undistorted_velocity(self, tracks: FeatureTracks) -> np.ndarray:
+        """(N, 2) image velocity in undistorted px/s (0 when the tracks carry none)."""
+        uv_d = np.asarray(tracks.uv, float).reshape(-1, 2)
+        if tracks.uv_per_s is None:
+            return np.zeros_like(uv_d)
+        vel_d = np.asarray(tracks.uv_per_s, float).reshape(-1, 2)
+        if not np.any(self.camera.dist):
+            return vel_d
+        a = self._undistort(uv_d)
+        b = self._undistort(uv_d - _H_S * vel_d)
+        return (a - b) / _H_S
+
+    def _undistort(self, uv_d: np.ndarray) -> np.ndarray:
+        cam = self.camera
+        xn = cam.undistort_to_normalized(uv_d)
+        return np.column_stack([cam.fx * xn[:, 0] + cam.cx, cam.fy * xn[:, 1] + cam.cy])
+
+    # ----------------------------------------------------------------- estimating
+    def after_start(self, keyframes: list[int]) -> None:
+        """The estimate from the start window (every keyframe of it is solved together)."""
+        if not self.estimating:
+            return
+        lag = max(1, min(int(self.cfg.time_offset_lag), len(keyframes) - 1))
+        got = [e for e in (self._pair_estimate(k - lag, k) for k in keyframes[lag:]) if e is not None]
+        self.history += [(-1, tau, float("nan")) for tau, _ in got]
+        if not got:
+            return
+        self._estimates.extend(got)
+        self._after_start = self._mean()
+        self.offset_s = self._after_start
+
+    def placed(self, k: int, ids: np.ndarray, uv: np.ndarray) -> None:
+        """Remember the offset keyframe k's pose was placed with, and its views (landmark ids, corrected pixels)."""
+        if self.estimating:
+            self._placed[k] = self.offset_s
+            self._views[k] = (np.asarray(ids).copy(), np.asarray(uv, float).copy())
+
+    def after_step(self, k: int) -> None:
+        """Read the keyframe that has settled since and update the offset for the keyframes that follow."""
+        if not self.estimating:
+            return
+        kj = k - max(int(self.cfg.time_offset_settle), 0)
+        ki = kj - max(int(self.cfg.time_offset_lag), 1)
+        for old in [kk for kk in self._placed if kk < ki]:
+            del self._placed[old]
+            self._views.pop(old, None)
+        got = self._pair_estimate(ki, kj)
+        if got is None:
+            return
+        self._estimates.append(got)
+        self.offset_s += float(np.clip(self._mean() - self.offset_s, -MAX_STEP_S, MAX_STEP_S))
+        self.history.append((kj, got[0], self.offset_s))
+
+    def _mean(self) -> float:
+        tau, w = np.array(self._estimates).T
+        return float(np.sum(w * tau) / np.sum(w))
+
+    def _pair_estimate(self, ki: int, kj: int) -> tuple[float, float] | None:
+        """(offset estimate s, weight) from the rotation between keyframes ki and kj against the gyro, or None."""
+        st = self.state
+        if ki not in self._placed or kj not in self._placed or ki not in st.t_ns or kj not in st.t_ns:
+            return None
+        if not (st.values.exists(X(ki)) and st.values.exists(X(kj)) and st.values.exists(B(kj))):
+            return None
+        bias = np.asarray(st.values.atConstantBias(B(kj)).gyroscope())
+        ti, tj = st.t_ns[ki], st.t_ns[kj]
+        dR = gyro_rotation(self.imu, ti, tj, bias)
+        if dR is None:
+            return None
+        Ri, Rj = self._visual_rotation(ki), self._visual_rotation(kj)
+        if Ri is None or Rj is None:
+            return None
+        r = Rotation.from_matrix(dR.T @ Ri.T @ Rj).as_rotvec()
+        a = gyro_at(self.imu, tj, bias) - dR.T @ gyro_at(self.imu, ti, bias)
+        aa = float(a @ a)
+        if aa < MIN_RATE_CHANGE**2:
+            return None
+        self._used += 1
+        placed = 0.5 * (self._placed[ki] + self._placed[kj])
+        return placed + float(r @ a) / aa, aa
+
+    def _visual_rotation(self, k: int) -> np.ndarray | None:
+        """world_R_body of keyframe k from its views alone (PnP on the landmarks' current estimates, started at the
+        smoother's pose): the camera's rotation when the images were taken, whatever time the pose was placed at."""
+        st = self.state
+        if k not in self._views:
+            return None
+        ids, uv = self._views[k]
+        keep = [i for i, j in enumerate(ids.tolist()) if st.smoother.has(L(j))]
+        if len(keep) < MIN_PNP_POINTS:
+            return None
+        est = st.smoother.estimate_keys([L(int(ids[i])) for i in keep])
+        p_world = np.array([est.atPoint3(L(int(ids[i]))) for i in keep])
+        world_T_cam = st.pose(k) @ st.body_P_cam.matrix()
+        cam_T_world = np.linalg.inv(world_T_cam)
+        K = st.K.K()
+        pc = p_world @ cam_T_world[:3, :3].T + cam_T_world[:3, 3]
+        z = pc[:, 2]
+        proj = (pc[:, :2] / np.maximum(z, 1e-9)[:, None]) @ K[:2, :2].T + K[:2, 2]
+        good = (z > 0.05) & (np.linalg.norm(proj - uv[keep], axis=1) <= GATE_PX)
+        if good.sum() < MIN_PNP_POINTS:
+            return None
+        rvec, _ = cv2.Rodrigues(cam_T_world[:3, :3])
+        ok, rvec, tvec = cv2.solvePnP(
+            p_world[good], uv[keep][good], K, None, rvec, cam_T_world[:3, 3].copy(), True, cv2.SOLVEPNP_ITERATIVE
+        )
+        if not ok:
+            return None
+        cam_R_world = cv2.Rodrigues(rvec)[0]
+        return cam_R_world.T @ st.body_P_cam.rotation().matrix().T
+
+    def report(self) -> TimeOffsetEstimate:
+        """What run.json says about the offset and the readout."""
+        sigma = None
+        if self.estimating and len(self._estimates) >= 2:
+            tau, w = np.array(self._estimates).T
+            mean = float(np.sum(w * tau) / np.sum(w))
+            n_eff = float(np.sum(w) ** 2 / np.sum(w * w))
+            var = float(np.sum(w * (tau - mean) ** 2) / np.sum(w))
+            sigma = float(np.sqrt(var / max(n_eff - 1.0, 1.0)))
+        return TimeOffsetEstimate(
+            estimated=self.estimating,
+            value_s=self.offset_s,
+            initial_s=float(self.cfg.time_offset_s),
+            after_initialisation_s=self._after_start,
+            sigma_s=sigma,
+            num_keyframes=self._used,
+            readout_s=self.readout_s,
+        )
+
+
+def gyro_at(imu: ImuSeries, t_ns: int, bias_gyro: np.ndarray) -> np.ndarray:
+    """(3,) bias-corrected angular rate at t_ns, rad/s, body frame: the gyro (linear between samples) averaged over
+    +-RATE_HALF_WINDOW_S (one sample's noise would dilute the regression on the rate change)."""
+    t = float(t_ns - imu.t_ns[0]) + np.linspace(-RATE_HALF_WINDOW_S, RATE_HALF_WINDOW_S, 9) * 1e9
+    ts = (imu.t_ns - imu.t_ns[0]).astype(float)
+    return np.array([np.interp(t, ts, imu.gyro[:, i]).mean() for i in range(3)]) - bias_gyro
+
+
+def gyro_rotation(imu: ImuSeries, t0_ns: int, t1_ns: int, bias_gyro: np.ndarray) -> np.ndarray | None:
+    """body(t0)_R_body(t1) from the bias-corrected gyro (midpoint rule, ends interpolated); None outside the IMU."""
+    if t0_ns < imu.t_ns[0] or t1_ns > imu.t_ns[-1] or t1_ns <= t0_ns:
+        return None
+    w = imu.window(t0_ns, t1_ns)
+    ts = np.concatenate([[t0_ns], w.t_ns[(w.t_ns > t0_ns) & (w.t_ns < t1_ns)], [t1_ns]])
+    rel = (ts - imu.t_ns[0]).astype(float)
+    base = (imu.t_ns - imu.t_ns[0]).astype(float)
+    g = np.column_stack([np.interp(rel, base, imu.gyro[:, i]) for i in range(3)]) - bias_gyro
+    steps = 0.5 * (g[1:] + g[:-1]) * (np.diff(ts) * 1e-9)[:, None]
+    R = np.eye(3)
+    for m in Rotation.from_rotvec(steps).as_matrix():
+        R = R @ m
+    return R
