@@ -39,6 +39,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         raise VioError("--imu-calib goes with --real-imu")
     if args.start is not None:
         phone["start_s"] = args.start
+    if args.close_fit:
+        phone["close_fit"] = True
     simulate(
         args.scenario,
         args.out,
@@ -203,6 +205,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the real IMU's noise (Kalibr IMU YAML or ASL sensor.yaml; default: sensor.yaml beside --real-imu)",
     )
     p.add_argument("--start", type=float, metavar="S", help="start this many seconds into a trajectory file")
+    p.add_argument(
+        "--close-fit",
+        action="store_true",
+        help="follow a trajectory file's poses closely instead of smoothing them (always so with --real-imu; give "
+        "it to a simulated-IMU twin of a --real-imu capture for the same images)",
+    )
     p.add_argument(
         "--still-start", type=float, default=0.0, metavar="S", help="hold the phone still this long before moving"
     )

@@ -63,6 +63,7 @@ def load_scenario(
     start_s: float = 0.0,
     file_clock: bool = False,
     phases: PhasedMotion | None = None,
+    close_fit: bool = False,
 ) -> Scenario:
     """Build a scenario by name (`orbit`, `figure8`, `room`), from a scenario YAML (`data/synthetic/*.yaml`), or
     from a trajectory file (EuRoC CSV or TUM) that drives a smooth spline through its poses.
@@ -73,7 +74,8 @@ def load_scenario(
     (`vio.sim.phone`; None: the default global-shutter camera), `imu_rate_hz` the IMU rate (None: 200 Hz) and
     `phone_imu` the magnitudes of the IMU's scale-factor, misalignment and timestamp errors (None: none).
     `start_s` (trajectory files only) starts the capture that many seconds into the trajectory; a trajectory
-    file's own clock is kept when its times are epoch-sized or `file_clock` (a real IMU on that clock).
+    file's own clock is kept when its times are epoch-sized or `file_clock` (a real IMU on that clock);
+    `close_fit` follows a trajectory file's poses closely instead of smoothing them (`spline_trajectory`).
     `phases` (`vio.sim.phases`) adds a still start, brisk excitation and a still end around the scenario's motion:
     `duration_s` is then the motion's length and the capture lasts `phases.total_s(duration_s)`."""
     if surface not in SURFACES:
@@ -97,8 +99,8 @@ def load_scenario(
     definition = None
     if name not in BUILTIN and name.lower().endswith((".yaml", ".yml")) and Path(name).is_file():
         definition = read_definition(Path(name))
-    if (name in BUILTIN or definition is not None) and start_s:
-        raise SimulationError("--start is for a trajectory file scenario (EuRoC CSV or TUM)")
+    if (name in BUILTIN or definition is not None) and (start_s or close_fit):
+        raise SimulationError("--start and --close-fit are for a trajectory file scenario (EuRoC CSV or TUM)")
     if name in BUILTIN or definition is not None:
         base = name if definition is None else definition.base
         motion = {} if definition is None else definition.motion
@@ -125,7 +127,7 @@ def load_scenario(
                 f"unknown scenario '{name}': choose orbit, figure8, room, a scenario YAML, "
                 "or a trajectory file (EuRoC CSV or TUM)"
             )
-        traj0, t_first_ns, p_world = _from_file(path)
+        traj0, t_first_ns, p_world = _from_file(path, close=close_fit)
         scene = scenarios.trajectory_room_scene(p_world, texture_seed, the_part, surface)
         if start_s >= traj0.duration_s - 1.0:
             raise SimulationError(f"{name}: start {start_s:g} s leaves less than 1 s of the {traj0.duration_s:.3f} s")
@@ -192,8 +194,9 @@ def _stills_camera(hz: float, size: tuple[int, int]):
     return rig.stills_camera(w, h, float(hz))
 
 
-def _from_file(path: Path) -> tuple[Trajectory, int, np.ndarray]:
-    """The spline through a trajectory file's poses, its first time (ns) and its positions (N, 3) m."""
+def _from_file(path: Path, close: bool = False) -> tuple[Trajectory, int, np.ndarray]:
+    """The spline through a trajectory file's poses (`close`: following them closely, see `spline_trajectory`), its
+    first time (ns) and its positions (N, 3) m."""
     from vio.trajio import read_trajectory
 
     traj = read_trajectory(path)
@@ -206,7 +209,7 @@ def _from_file(path: Path) -> tuple[Trajectory, int, np.ndarray]:
     if gaps.max() > 1.0:
         i = int(np.argmax(gaps))
         raise SimulationError(f"{path}: {gaps[i]:.2f} s gap between poses {i} and {i + 1}; the spline needs < 1 s")
-    spline, t_first_ns = spline_trajectory(traj.t_ns, traj.p_world, traj.q_wxyz)
+    spline, t_first_ns = spline_trajectory(traj.t_ns, traj.p_world, traj.q_wxyz, close=close)
     return spline, t_first_ns, traj.p_world
 
 
@@ -244,8 +247,9 @@ def simulate(
     part_units, surface, stills_hz, stills_size, phone, imu_rate_hz and phone_imu; `mars` (a folder) also
     writes the capture as a MARS logger folder with H.264 video (`vio.writers.mars`). `real_imu` (an EuRoC/ASL
     `imu0/data.csv` on the trajectory file's clock) replaces the simulated IMU with the recording's samples, its
-    noise from `real_imu_calib` or the `sensor.yaml` beside it (`vio.sim.real_imu`); `scene` may then also hold
-    `start_s`, the start within the trajectory. `scene` may also hold `phases` (`vio.sim.phases`).
+    noise from `real_imu_calib` or the `sensor.yaml` beside it (`vio.sim.real_imu`), along the trajectory followed
+    closely (`close_fit`, which a simulated-IMU twin of the same images needs too). `scene` may also hold `start_s`,
+    the start within a trajectory file. `scene` may also hold `phases` (`vio.sim.phases`).
     """
     board = scene.pop("board", None)
     motion = scene.pop("calibration_motion", None)
@@ -323,7 +327,8 @@ def _simulate_real_imu(
     if "phases" in scene:
         raise SimulationError("--real-imu records the real motion: the still/excite phases cannot be added to it")
     real = load_real_imu(real_imu, real_imu_calib)
-    sc = load_scenario(scenario, seed, duration_s, "ideal", file_clock=True, **scene)
+    scene.pop("close_fit", None)  # always: the real IMU measured the recorded motion, not a smoothed one
+    sc = load_scenario(scenario, seed, duration_s, "ideal", file_clock=True, close_fit=True, **scene)
     imu = imu_window(real, sc.t0_ns, sc.duration_s)
     biases = trajectory_biases(scenario)
     sc = replace(

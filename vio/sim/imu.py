@@ -43,10 +43,10 @@ IMU_GRADES: dict[str, ImuGrade] = {
     "phone": ImuGrade("phone", 0.002, 0.015, 5e-5, 1e-3, 0.005, 0.05),
     # A tactical/industrial MEMS IMU (ADIS16448 class, the EuRoC sensor, with steadier biases).
     "tactical": ImuGrade("tactical", 1.7e-4, 2.0e-3, 2e-6, 5e-5, 5e-4, 0.01),
-    # EuRoC's ADIS16448 exactly as its published imu0/sensor.yaml states it (random walks included), with initial
-    # biases of the size V1_01's ground truth gives (gyro up to 0.077 rad/s, accelerometer up to 0.16 m/s^2): the
-    # simulated twin of `vio simulate ... --real-imu` on EuRoC, with the noise the real capture declares.
-    "euroc": ImuGrade("euroc", 1.6968e-4, 2.0e-3, 1.9393e-5, 3.0e-3, 0.03, 0.08),
+    # EuRoC's ADIS16448 exactly as its published imu0/sensor.yaml states it (random walks included), initial biases
+    # as the tactical grade's: the simulated twin of `vio simulate ... --real-imu` on EuRoC, with the noise the real
+    # capture declares. (V1_01's own biases are larger, gyro up to 0.077 rad/s: docs/BENCHMARKS.md, issue 16.)
+    "euroc": ImuGrade("euroc", 1.6968e-4, 2.0e-3, 1.9393e-5, 3.0e-3, 5e-4, 0.01),
 }
 
 

@@ -120,22 +120,29 @@ def smoothstep7(x: np.ndarray) -> np.ndarray:
     return x**4 * (35.0 - 84.0 * x + 70.0 * x**2 - 20.0 * x**3)
 
 
-def spline_trajectory(t_ns: np.ndarray, p_world: np.ndarray, q_wxyz: np.ndarray) -> tuple[Trajectory, int]:
+def spline_trajectory(
+    t_ns: np.ndarray, p_world: np.ndarray, q_wxyz: np.ndarray, close: bool = False
+) -> tuple[Trajectory, int]:
     """A smooth trajectory through recorded body poses (e.g. EuRoC ground truth or a TUM file).
 
     Position: least-squares quintic B-spline with knots every ~0.2 s (smooths mm-level motion-capture noise and
     keeps accelerations physical). Orientation: scipy's RotationSpline through the poses decimated to ~10 Hz.
+    `close` follows the recording more closely, for a real IMU that measured its motion (`vio.sim.real_imu`): knots
+    every two pose intervals (at least 50 ms) and the orientation through the poses at up to 40 Hz (on EuRoC's
+    20 Hz ground truth: 0.1 s knots, every pose), so the rendered motion keeps what the poses hold up to a few Hz.
     Returns the trajectory (time 0 is 50 ms after the first pose) and that start time in ns.
     """
     t_ns = np.asarray(t_ns, np.int64)
     t = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
     span = float(t[-1])
     k = 5
-    n_inner = max(int(span / 0.2) - 1, 0)
+    dt_pose = float(np.median(np.diff(t)))
+    knot_s, rot_step_s = (max(2.0 * dt_pose, 0.05), max(dt_pose, 0.025)) if close else (0.2, 0.1)
+    n_inner = max(int(span / knot_s) - 1, 0)
     inner = np.linspace(0.0, span, n_inner + 2)[1:-1]
     knots = np.concatenate([np.full(k + 1, 0.0), inner, np.full(k + 1, span)])
     pos_spline = make_lsq_spline(t, p_world, knots, k=k)
-    step = max(1, int(round(0.1 / max(np.median(np.diff(t)), 1e-6))))
+    step = max(1, int(round(rot_step_s / max(dt_pose, 1e-6))))
     idx = np.unique(np.concatenate([np.arange(0, t.size, step), [t.size - 1]]))
     q_xyzw = np.asarray(q_wxyz, float)[idx][:, [1, 2, 3, 0]]
     rot_spline = RotationSpline(t[idx], Rotation.from_quat(q_xyzw))
