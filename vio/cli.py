@@ -227,7 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="track features through a capture; writes t_ns,track_id,u,v")
     p.add_argument("capture")
     p.add_argument("--out", required=True, help="tracks CSV")
-    p.add_argument("--calib", help="Kalibr YAML or ASL mav0 folder with the calibration")
+    p.add_argument(
+        "--calib", help="Kalibr YAML, ASL mav0 folder, or OpenCV/ORB-SLAM FileStorage YAML with the calibration"
+    )
     _add_config_args(p)
     p.set_defaults(func=_cmd_track)
 
