@@ -91,12 +91,21 @@ def mesh_from_volume(volume: FusedVolume, frame: str = "world", smooth_iteration
     return Mesh(np.ascontiguousarray(vertices), np.ascontiguousarray(faces, dtype=np.int64), frame=frame)
 
 
+BASE_SNAP_M = 1e-9  # support-frame vertices this close to the plane are put on it exactly
+
+
 def to_support(mesh: Mesh, world_T_support: np.ndarray) -> Mesh:
-    """A world-frame mesh in the support frame (the part on its base, z up, origin on the plane), for part.stl."""
+    """A world-frame mesh in the support frame (the part on its base, z up, origin on the plane), for part.stl.
+
+    The bottom closed on the plane comes back from the world frame with heights of about 1e-17 m of either sign;
+    those within BASE_SNAP_M are set to 0 exactly, so the base stays flat once part.stl rounds it to float32 mm
+    (a base left at +-5e-17 had 6 of its faces reported crossing their neighbours after that rounding)."""
     if mesh.frame != "world":
         raise ValueError(f"expected a world-frame mesh, got frame {mesh.frame!r}")
     T = np.linalg.inv(world_T_support)
-    return Mesh(mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.faces, "support", mesh.colours)
+    vertices = mesh.vertices @ T[:3, :3].T + T[:3, 3]
+    vertices[np.abs(vertices[:, 2]) < BASE_SNAP_M, 2] = 0.0
+    return Mesh(vertices, mesh.faces, "support", mesh.colours)
 
 
 def mesh_checks(mesh: Mesh) -> dict[str, object]:

@@ -272,3 +272,28 @@ def test_a_region_that_swallowed_the_table_fails_before_the_stereo():
     with pytest.raises(ModelError, match=r"1480 x 1120 x 101 mm.*--roi"):
         check_grid(roi, 4e-4)
     check_grid(Roi(np.eye(4), np.array([-0.05, -0.05, -0.01]), np.array([0.05, 0.05, 0.09])), 4e-4)  # a part: fine
+
+
+def test_a_base_on_the_plane_stays_flat_in_float32_millimetres():
+    """A flat base that comes back from the world frame at heights of +-5e-17 m reads as crossing faces once
+    rounded to float32 mm (part.stl); to_support puts it on the plane exactly, and then nothing crosses."""
+    from scipy.spatial.transform import Rotation
+
+    from vio.model.quality import intersecting_faces
+    from vio.model.records import Mesh
+
+    n = 60
+    x, y = np.meshgrid(np.arange(n) * 4e-4 + 0.0216522, np.arange(n) * 4e-4 - 0.0011181)
+    flat = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    a = np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]
+    faces = np.concatenate([np.stack([a, a + n + 1, a + 1], -1), np.stack([a, a + n, a + n + 1], -1)]).reshape(-1, 3)
+    world_T_support = np.eye(4)
+    world_T_support[:3, :3] = Rotation.from_euler("xyz", [0.3, -0.2, 1.1]).as_matrix()
+    world_T_support[:3, 3] = [0.41, -0.27, 0.77]
+    world = flat @ world_T_support[:3, :3].T + world_T_support[:3, 3]
+    base = to_support(Mesh(world, faces, "world"), world_T_support)
+    assert (base.vertices[:, 2] == 0.0).all()
+    assert len(intersecting_faces((base.vertices * 1e3).astype(np.float32).astype(np.float64), faces)) == 0
+    jitter_mm = np.random.default_rng(0).choice([-5.42e-17, 0.0, 5.42e-17], n * n)  # as a model's part.stl had
+    unsnapped = np.column_stack([flat[:, :2] * 1e3, jitter_mm]).astype(np.float32).astype(np.float64)
+    assert len(intersecting_faces(unsnapped, faces)) > 0  # the check this guards against
