@@ -7,17 +7,22 @@ IMU time of its image's centre row, `t_cam + offset + readout / 2` (for a global
 from its row's time to that pose time with the track's image velocity (VINS-Mono's feature-velocity correction):
 `uv - readout * (v / H - 1/2) * velocity`.
 
-The offset is estimated (`camera.estimate_time_offset`) from rotations: keyframe poses placed `d` seconds from
-where the images really were turn, between keyframes i and j, by what the gyro turned over the interval shifted by
-`d`, which differs from what it turned over the placed interval by `Log(dR_gyro^T R_i^T R_j) = d (w_j - dR_gyro^T
-w_i)` to first order (w the bias-corrected gyro at each end, dR_gyro its integral over the placed interval). Each
-keyframe that has settled (`time_offset_settle` keyframes after it entered the graph) is paired with the keyframe
-`time_offset_lag` before it; least squares over the pairs gives `d`, and the offset it was placed with plus `d` is
-that pair's estimate; the start window gives the first one (at initialisation). The offset is the weighted mean of
-the last `time_offset_window` pairs' estimates and is applied to the keyframes that follow. The smoother's
-rotations are a compromise between the images and the gyro, so each pair's `d` is short of the whole error (about a
-third on the orbit); the loop's fixed point is where the pairs no longer see a shift, the true offset. The
-projection residuals hold much less of it: the poses absorb the shift there (about 3 % on the orbit).
+The offset is estimated (`camera.estimate_time_offset`) from rotations. Keyframe poses placed `d` seconds before
+the images were really taken turn, between keyframes i and j, by what the gyro turned over the placed interval
+shifted by `d`: to first order `Log(dR_gyro^T R_i^T R_j) = d (w_j - dR_gyro^T w_i)`, with dR_gyro the bias-corrected
+gyro's integral over the placed interval and w its rate at each end (averaged over +-20 ms). R_i, R_j are the
+images' own rotations: PnP on the landmarks' current estimates, started at the smoother's pose. The smoother's
+rotations would not do: they are a compromise with the gyro and hold only part of the shift (a third on the orbit),
+and the projection residuals hold almost none of it (the poses absorb it: 3 %). The information is the angular
+acceleration: the gyro's noise over it bounds the estimate at `gyro_noise_density / sqrt(integral |dw/dt|^2 dt)`.
+
+Each keyframe that has settled (`time_offset_settle` keyframes after it entered the graph) is paired with the one
+`time_offset_lag` before it; least squares gives that pair's `d`, and the offset the pair was placed with plus `d`
+is its estimate of the offset. The start window's pairs give the first estimate (at initialisation; its landmarks
+are young and it falls short, e.g. 2-3 ms of 15 on the orbit), applied until `MIN_ONLINE_PAIRS` pairs were read
+online; from then on the offset is the weighted mean (weight |w_j - dR^T w_i|^2) of the online pairs (the last
+`time_offset_window`, or all), applied to the keyframes that follow, at most `MAX_STEP_S` per keyframe. Its stated
+sigma is the standard error of that mean from the pairs' scatter.
 """
 
 from __future__ import annotations
@@ -31,14 +36,18 @@ from scipy.spatial.transform import Rotation
 from backend.graph_state import GraphState
 from backend.keys import B, L, X
 from vio.config import CameraConfig
+from vio.errors import ConfigError
 from vio.records import CameraCalib, FeatureTracks, ImuSeries, TimeOffsetEstimate
 
 MIN_PNP_POINTS = 12  # a keyframe with fewer landmarks in view gives no visual rotation
 GATE_PX = 3.0  # views further than this from the smoother's projection are left out of the visual rotation, px
 RATE_HALF_WINDOW_S = 0.02  # the gyro rate at a keyframe is its mean over this much either side, s
+TRACE_EVERY_S = 2.0  # run.json's trace of the offset: one value per this much capture time, s
+MAX_KEPT_KEYFRAMES = 300  # views kept for the estimate at most this many keyframes back
+MIN_ONLINE_PAIRS = 10  # the start window's estimate is applied until this many pairs were read online
 MIN_RATE_CHANGE = 0.005  # rad/s: a pair whose ends turn at (almost) the same rate gives no estimate
 MAX_STEP_S = 0.002  # the offset applied to the next keyframe moves by at most this much per keyframe, s
-_H_S = 0.01  # step of the finite difference that maps a distorted pixel velocity to an undistorted one, s
+_H_S = 0.001  # half-step of the central difference that maps a distorted pixel velocity to an undistorted one, s
 
 
 class CameraTiming:
@@ -49,13 +58,20 @@ class CameraTiming:
     ) -> None:
         self.cfg, self.camera, self.imu, self.state = cfg, camera, imu, state
         self.readout_s = max(float(cfg.readout_s), 0.0)
+        if self.readout_s >= 1.0 / max(camera.rate_hz, 1e-9):
+            raise ConfigError(
+                f"config camera.readout_s: {self.readout_s:g} s is not shorter than the frame interval "
+                f"({1.0 / camera.rate_hz:g} s at {camera.rate_hz:g} Hz); a readout is typically 5-35 ms"
+            )
         self.estimating = bool(cfg.estimate_time_offset) and enabled
         self.offset_s = float(cfg.time_offset_s)
         self._after_start: float | None = None
         self._placed: dict[int, float] = {}  # keyframe -> the offset its pose was placed with, s
         self._views: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe -> landmark ids, corrected pixels
-        self._estimates: deque[tuple[float, float]] = deque(maxlen=max(int(cfg.time_offset_window), 1))
+        window = int(cfg.time_offset_window)
+        self._estimates: deque[tuple[float, float]] = deque(maxlen=window if window > 0 else None)
         self._used = 0
+        self._trace: list[tuple[float, float]] = []  # (s since the first keyframe, offset applied from then on s)
         self.history: list[tuple[int, float, float]] = []  # (k, that keyframe's estimate s, offset after it s)
 
     # ----------------------------------------------------------------- placing and correcting
@@ -79,9 +95,9 @@ class CameraTiming:
         vel_d = np.asarray(tracks.uv_per_s, float).reshape(-1, 2)
         if not np.any(self.camera.dist):
             return vel_d
-        a = self._undistort(uv_d)
+        a = self._undistort(uv_d + _H_S * vel_d)
         b = self._undistort(uv_d - _H_S * vel_d)
-        return (a - b) / _H_S
+        return (a - b) / (2.0 * _H_S)
 
     def _undistort(self, uv_d: np.ndarray) -> np.ndarray:
         cam = self.camera
@@ -90,23 +106,24 @@ class CameraTiming:
 
     # ----------------------------------------------------------------- estimating
     def after_start(self, keyframes: list[int]) -> None:
-        """The estimate from the start window (every keyframe of it is solved together)."""
+        """The first estimate, from the start window's pairs (applied until the online pairs take over)."""
         if not self.estimating:
             return
         lag = max(1, min(int(self.cfg.time_offset_lag), len(keyframes) - 1))
         got = [e for e in (self._pair_estimate(k - lag, k) for k in keyframes[lag:]) if e is not None]
         self.history += [(-1, tau, float("nan")) for tau, _ in got]
-        if not got:
-            return
-        self._estimates.extend(got)
-        self._after_start = self._mean()
-        self.offset_s = self._after_start
+        if got:
+            self._after_start = _weighted_mean(got)
+            self.offset_s = self._after_start
 
     def placed(self, k: int, ids: np.ndarray, uv: np.ndarray) -> None:
         """Remember the offset keyframe k's pose was placed with, and its views (landmark ids, corrected pixels)."""
         if self.estimating:
             self._placed[k] = self.offset_s
             self._views[k] = (np.asarray(ids).copy(), np.asarray(uv, float).copy())
+            for old in [kk for kk in self._views if kk < k - MAX_KEPT_KEYFRAMES]:  # a start that never comes
+                self._views.pop(old)
+                self._placed.pop(old, None)
 
     def after_step(self, k: int) -> None:
         """Read the keyframe that has settled since and update the offset for the keyframes that follow."""
@@ -121,12 +138,13 @@ class CameraTiming:
         if got is None:
             return
         self._estimates.append(got)
-        self.offset_s += float(np.clip(self._mean() - self.offset_s, -MAX_STEP_S, MAX_STEP_S))
+        if len(self._estimates) >= MIN_ONLINE_PAIRS:
+            target = _weighted_mean(self._estimates)
+            self.offset_s += float(np.clip(target - self.offset_s, -MAX_STEP_S, MAX_STEP_S))
         self.history.append((kj, got[0], self.offset_s))
-
-    def _mean(self) -> float:
-        tau, w = np.array(self._estimates).T
-        return float(np.sum(w * tau) / np.sum(w))
+        t_s = (self.state.t_ns[kj] - self.state.t_ns[min(self.state.t_ns)]) * 1e-9
+        if not self._trace or t_s - self._trace[-1][0] >= TRACE_EVERY_S:
+            self._trace.append((round(t_s, 3), self.offset_s))
 
     def _pair_estimate(self, ki: int, kj: int) -> tuple[float, float] | None:
         """(offset estimate s, weight) from the rotation between keyframes ki and kj against the gyro, or None."""
@@ -188,7 +206,8 @@ class CameraTiming:
         if self.estimating and len(self._estimates) >= 2:
             tau, w = np.array(self._estimates).T
             mean = float(np.sum(w * tau) / np.sum(w))
-            n_eff = float(np.sum(w) ** 2 / np.sum(w * w))
+            lag = max(int(self.cfg.time_offset_lag), 1)  # pairs that overlap are not independent
+            n_eff = float(np.sum(w) ** 2 / np.sum(w * w)) / lag
             var = float(np.sum(w * (tau - mean) ** 2) / np.sum(w))
             sigma = float(np.sqrt(var / max(n_eff - 1.0, 1.0)))
         return TimeOffsetEstimate(
@@ -199,7 +218,13 @@ class CameraTiming:
             sigma_s=sigma,
             num_keyframes=self._used,
             readout_s=self.readout_s,
+            trace=tuple(self._trace),
         )
+
+
+def _weighted_mean(estimates) -> float:
+    tau, w = np.array(list(estimates)).T
+    return float(np.sum(w * tau) / np.sum(w))
 
 
 def gyro_at(imu: ImuSeries, t_ns: int, bias_gyro: np.ndarray) -> np.ndarray:

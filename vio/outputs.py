@@ -185,7 +185,7 @@ def camera_timing(stats: EstimatorStats, readout_source: str) -> dict[str, Any]:
         "readout_source": readout_source,
         "time_offset_s": to.value_s,
         "time_offset_method": (
-            "estimated: keyframe rotations from the images (PnP) against the gyro, start window then online"
+            "estimated: the images' rotations (PnP) between keyframes against the gyro's, start window then online"
             if to.estimated
             else "fixed: camera.time_offset_s"
         ),
@@ -193,6 +193,7 @@ def camera_timing(stats: EstimatorStats, readout_source: str) -> dict[str, Any]:
         "time_offset_initial_s": to.initial_s,
         "time_offset_after_initialisation_s": to.after_initialisation_s,
         "time_offset_keyframes": to.num_keyframes,
+        "time_offset_trace": [list(x) for x in to.trace],
     }
 
 

@@ -229,6 +229,7 @@ class TimeOffsetEstimate:
     sigma_s: float | None  # standard error of the estimate from the scatter of per-keyframe estimates, s
     num_keyframes: int  # keyframes whose residuals went into the estimate
     readout_s: float  # rolling-shutter readout used (0: global shutter), s
+    trace: tuple[tuple[float, float], ...] = ()  # (s since the first keyframe, the offset applied from then, s)
 
 
 @dataclass(frozen=True)

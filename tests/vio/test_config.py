@@ -81,7 +81,7 @@ def test_presets_apply_in_order_before_file_and_overrides(tmp_path):
     cfg = load_config(p, ["smoother.lag_s=5"], presets=["vision_only", "fixed_lag"])
     assert cfg.keyframes.min_parallax_px == 15.0  # the file wins over the preset
     assert cfg.smoother.kind == "fixed_lag" and cfg.smoother.lag_s == 5.0  # the override wins over both
-    with pytest.raises(ConfigError, match="unknown preset 'nope'; known: fixed_lag, vision_only"):
+    with pytest.raises(ConfigError, match="unknown preset 'nope'; known: fixed_lag, phone, vision_only"):
         load_config(None, [], presets=["nope"])
 
 
