@@ -80,8 +80,9 @@ def load_real_imu(path: str | Path, calib: str | Path | None = None) -> RealImu:
 
 
 def imu_window(real: RealImu, t0_ns: int, duration_s: float) -> ImuSeries:
-    """The real samples in [t0_ns, t0_ns + duration]; a one-line error when the recording does not cover it
-    (another clock, or a trajectory longer than the IMU log)."""
+    """The real samples that span [t0_ns, t0_ns + duration] (with the last one at or before the start and the
+    first one at or after the end, so every frame lies inside); a one-line error when the recording does not cover
+    it (another clock, or a trajectory longer than the IMU log)."""
     t_end = int(t0_ns) + int(round(duration_s * 1e9))
     imu = real.imu
     first, last = int(imu.t_ns[0]), int(imu.t_ns[-1])
@@ -90,8 +91,9 @@ def imu_window(real: RealImu, t0_ns: int, duration_s: float) -> ImuSeries:
             f"{real.source}: the IMU ({first * 1e-9:.3f}..{last * 1e-9:.3f} s) does not cover the capture "
             f"({t0_ns * 1e-9:.3f}..{t_end * 1e-9:.3f} s): the trajectory and the IMU must share a clock"
         )
-    inside = (imu.t_ns >= t0_ns) & (imu.t_ns <= t_end)
-    return ImuSeries(imu.t_ns[inside].copy(), imu.gyro[inside].copy(), imu.acc[inside].copy())
+    i0 = int(np.searchsorted(imu.t_ns, t0_ns, side="right")) - 1
+    i1 = int(np.searchsorted(imu.t_ns, t_end, side="left")) + 1
+    return ImuSeries(imu.t_ns[i0:i1].copy(), imu.gyro[i0:i1].copy(), imu.acc[i0:i1].copy())
 
 
 def ground_truth_at(traj: Trajectory, t0_ns: int, t_ns: np.ndarray, biases: GroundTruth | None) -> GroundTruth:
