@@ -7,7 +7,8 @@ PyYAML cannot read these files (the `%YAML:1.0` directive and the `!!opencv-matr
   `image_width`, `image_height`, `camera_matrix` (3x3 K), `distortion_coefficients` (k1, k2, p1, p2[, k3, ...]).
   It has no camera-IMU extrinsics: `body_T_cam` is the identity, with a warning to run `vio calibrate camera-imu`.
 - **ORB-SLAM2 / ORB-SLAM3 settings**: `Camera.fx/fy/cx/cy`, `Camera.k1/k2/p1/p2[/k3]`, `Camera.width/height`,
-  `Camera.fps` (frames per second), `Camera.type` (`PinHole`; `KannalaBrandt8` fisheye is refused), and ORB-SLAM3's
+  `Camera.fps` (frames per second; ORB-SLAM2's files carry no image size, which the capture's images then give),
+  `Camera.type` (`PinHole`; `KannalaBrandt8` fisheye is refused), and ORB-SLAM3's
   version 1.0 files with `Camera1.fx ...` (the first camera). The camera-IMU extrinsics of ORB-SLAM3's inertial
   settings, `Tbc` (older files) or `IMU.T_b_c1` (version 1.0), are **body_T_cam**: they map a point from the
   camera frame to the body (IMU) frame, Kalibr's `T_BS` / the inverse of Kalibr's `T_cam_imu` (ORB-SLAM3's EuRoC
@@ -106,6 +107,8 @@ def _radtan(path: Path, coeffs: np.ndarray, fx: float, fy: float, cx: float, cy:
         )
     k3 = float(extra[0]) if extra.size else 0.0
     if k3:
+        if not (w and h):  # size unknown (ORB-SLAM2): the principal point taken as the centre
+            w, h = int(round(2.0 * cx + 1.0)), int(round(2.0 * cy + 1.0))
         corners = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
         r = np.hypot((corners[:, 0] - cx) / fx, (corners[:, 1] - cy) / fy).max()
         shift_px = abs(k3) * r**7 * max(fx, fy)
@@ -180,15 +183,16 @@ def read_opencv_calibration(path: str | Path) -> Calibration:
                     f"{path}: Camera.type '{ctype.string()}' is not supported (PinHole with radtan only)"
                 )
             fx, fy, cx, cy = (_number(fs, path, prefix + k) for k in ("fx", "fy", "cx", "cy"))
-            w = int(_number(fs, path, "Camera.width") or 0) if not fs.getNode("Camera.width").empty() else 0
-            h = int(_number(fs, path, "Camera.height") or 0) if not fs.getNode("Camera.height").empty() else 0
-            if not (w and h):
-                raise CalibrationError(f"{path}: needs Camera.width and Camera.height (the image size, px)")
+            w = int(_number(fs, path, "Camera.width", required=False) or 0)
+            h = int(_number(fs, path, "Camera.height", required=False) or 0)
+            if (w == 0) != (h == 0):
+                raise CalibrationError(f"{path}: needs both Camera.width and Camera.height (the image size, px)")
+            # ORB-SLAM2's settings carry no image size: 0 x 0 here, the capture's images give it (`finish_capture`)
             names = ("k1", "k2", "p1", "p2", "k3")
             coeffs = np.array([_number(fs, path, prefix + k, required=False) or 0.0 for k in names])
             rate = _number(fs, path, "Camera.fps", required=False) or 30.0
             imu = _imu(fs, path)
-        if min(fx, fy) <= 0 or w <= 0 or h <= 0 or rate <= 0:
+        if min(fx, fy) <= 0 or w < 0 or h < 0 or rate <= 0:
             raise CalibrationError(f"{path}: focal lengths, image size and frame rate must be positive")
         dist = _radtan(path, coeffs, fx, fy, cx, cy, w, h, warn)
         body_T_cam = _body_T_cam(fs, path, warn)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Collection
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +173,9 @@ def _image_size_problems(cap: Capture, source: Path) -> list[str]:
             continue
         h, w = img.shape[:2]
         c = cap.camera
+        if (c.width, c.height) == (0, 0):  # a calibration without an image size (ORB-SLAM2 settings): the images'
+            cap.camera = replace(c, width=int(w), height=int(h))
+            return []
         if (w, h) == (c.width, c.height):
             return []
         rotated = " (rotated video?)" if (h, w) == (c.width, c.height) else ""

@@ -158,7 +158,7 @@ def test_a_large_k3_or_a_fisheye_is_refused_in_one_line(tmp_path):
     ("text", "message"),
     [
         ("%YAML:1.0\nCamera.fx: [458.6, 457.2\n", r"not a readable OpenCV FileStorage file \(line \d+: "),
-        (ORB_SLAM2.replace("Camera.width: 752\n", ""), "needs Camera.width and Camera.height"),
+        (ORB_SLAM2.replace("Camera.width: 752\n", ""), "needs both Camera.width and Camera.height"),
         (ORB_SLAM2.replace("Camera.cy: 248.375", "Camera.cy: abc"), "'Camera.cy' must be a number"),
         (ORB_SLAM3_INERTIAL.replace("rows: 4\n   cols: 4", "rows: 2\n   cols: 8"), "Tbc must be a 4x4 matrix"),
         (
@@ -174,6 +174,14 @@ def test_malformed_opencv_files_give_one_line(text, message, tmp_path):
     with pytest.raises(CalibrationError, match=message) as info:
         load_calibration(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_orb_slam2_settings_without_an_image_size_take_the_images(sim_capture, tmp_path):
+    settings = tmp_path / "orb2.yaml"
+    settings.write_text(ORB_SLAM2.replace("Camera.width: 752\nCamera.height: 480\n", ""))
+    assert (load_calibration(settings).camera.width, load_calibration(settings).camera.height) == (0, 0)
+    cap = open_capture(sim_capture("orbit", duration_s=1.0), calib=settings)
+    assert (cap.camera.width, cap.camera.height, cap.camera.fx) == (640, 480, 458.654)
 
 
 def test_orb_slam3_file_as_calib_of_a_capture_and_beside_it(sim_capture, tmp_path):
