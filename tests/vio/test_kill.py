@@ -3,42 +3,26 @@ succeeds. The kill lands at seeded random points after the run has started (its 
 
 from __future__ import annotations
 
-import json
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, default_sigint
+from tests.processes import run_status as _status
+from tests.processes import sigkill, start_vio, wait_until
 
 ESTIMATE_FILES = ("trajectory.tum", "states.csv", "landmarks.ply")
 
 
 def _start(capture: Path, out: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "vio.cli", "run", str(capture), "--out", str(out), "--set", "run.progress=false"]
-    return subprocess.Popen(
-        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint
-    )
+    return start_vio("run", str(capture), "--out", str(out), "--set", "run.progress=false")
 
 
-def _status(out: Path) -> str | None:
-    try:
-        return json.loads((out / "run.json").read_text())["status"]
-    except (FileNotFoundError, json.JSONDecodeError, KeyError):
-        return None
-
-
-def _wait_running(proc: subprocess.Popen, out: Path, timeout_s: float = 120.0) -> None:
-    t0 = time.monotonic()
-    while _status(out) != "running":
-        assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() - t0 < timeout_s
-        time.sleep(0.02)
+def _wait_running(proc: subprocess.Popen, out: Path) -> None:
+    wait_until(proc, lambda: _status(out) == "running", timeout_s=120.0)
 
 
 def _assert_not_complete(out: Path) -> None:
@@ -68,12 +52,9 @@ def test_sigkill_mid_run_leaves_nothing_that_looks_complete_and_a_rerun_succeeds
         proc = _start(capture, out)
         _wait_running(proc, out)
         time.sleep(delay)
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
-            killed += 1
-        rc = proc.wait(timeout=60)
-        proc.communicate()
-        if rc == -signal.SIGKILL:
+        was_killed, rc = sigkill(proc)
+        killed += was_killed
+        if was_killed:
             _assert_not_complete(out)
         else:  # it finished before the kill landed: then it is complete
             assert rc == 0 and _status(out) == "ok"

@@ -6,17 +6,17 @@ run and of the model steps (an 8 s orbit with 16 stills; a coarse voxel and no b
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, default_sigint
+from tests.processes import run_status as _status
+from tests.processes import sigkill, start_vio
+from tests.processes import wait_until as _wait
 
 MODEL_FILES = ("model.json", "part.stl", "part.ply", "dense.ply")
 RUN_FILES = ("trajectory.tum", "states.csv", "landmarks.ply")
@@ -24,25 +24,7 @@ OPTIONS = ("--voxel-mm", "2", "--no-adjust")
 
 
 def _start(capture: Path, out: Path, *extra: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "vio.cli", "model", str(capture), "--out", str(out), *OPTIONS, *extra]
-    return subprocess.Popen(
-        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint
-    )
-
-
-def _status(run: Path) -> str | None:
-    try:
-        return json.loads((run / "run.json").read_text())["status"]
-    except (FileNotFoundError, json.JSONDecodeError, KeyError):
-        return None
-
-
-def _wait(proc: subprocess.Popen, ready, timeout_s: float = 300.0) -> None:
-    t0 = time.monotonic()
-    while not ready():
-        assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() - t0 < timeout_s
-        time.sleep(0.02)
+    return start_vio("model", str(capture), "--out", str(out), *OPTIONS, *extra)
 
 
 def _assert_no_model(out: Path, earlier_mtime_ns: dict[str, int]) -> None:
@@ -98,12 +80,9 @@ def test_sigkill_mid_model_leaves_nothing_that_looks_complete_and_a_rerun_succee
         if phase == "model":
             _wait(proc, lambda: _status(run) == "ok")  # its run is done: the model steps go on
         time.sleep(fraction * (run_s if phase == "run" else model_s))
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
-            killed += 1
-        rc = proc.wait(timeout=60)
-        proc.communicate()
-        if rc == -signal.SIGKILL:
+        was_killed, rc = sigkill(proc)
+        killed += was_killed
+        if was_killed:
             _assert_no_model(out, earlier)
         else:  # it finished before the kill landed: then it is complete
             assert rc == 0

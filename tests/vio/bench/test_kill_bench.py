@@ -9,14 +9,14 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import ROOT, default_sigint
+from tests.conftest import ROOT
+from tests.processes import VIO, sigkill, start_vio
 from vio.bench import JOB_RECORD
 
 SCENARIOS = ("orbit", "room", "figure8")
@@ -32,17 +32,13 @@ def _suite(path: Path, name: str, scenarios: tuple[str, ...], seed: int) -> Path
     return path
 
 
+def _bench_args(suite: Path, out: Path) -> list[str]:
+    return ["bench", "--suite", str(suite), "--jobs", "1", "--out", str(out)]
+
+
 def _start(suite: Path, out: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "vio.cli", "bench", "--suite", str(suite), "--jobs", "1", "--out", str(out)]
-    return subprocess.Popen(
-        cmd,
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=default_sigint,
-        start_new_session=True,  # its own process group: Ctrl-C reaches the bench and its jobs' children
-    )
+    # its own process group: Ctrl-C reaches the bench and its jobs' children
+    return start_vio(*_bench_args(suite, out), stdout=subprocess.DEVNULL, start_new_session=True)
 
 
 def _wait_line(proc: subprocess.Popen, text: str) -> None:
@@ -99,12 +95,9 @@ def test_sigkill_mid_suite_leaves_no_summary_and_the_rerun_resumes(tmp_path, ear
         if i:  # the first kill lands in the first job; the others in the job after one this run finished
             _wait_line(proc, "jobs done")
         time.sleep(fraction * job_s)
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
-            killed += 1
-        rc = proc.wait(timeout=60)
-        proc.communicate()
-        if rc == -signal.SIGKILL:
+        was_killed, rc = sigkill(proc)
+        killed += was_killed
+        if was_killed:
             assert not (out / "results.json").exists() and not (out / "results.md").exists()
             _done_jobs(out)
         else:  # it finished before the kill landed: then it is complete
@@ -112,13 +105,7 @@ def test_sigkill_mid_suite_leaves_no_summary_and_the_rerun_resumes(tmp_path, ear
             _assert_complete(out, json.loads((out / "results.json").read_text())["bench"]["resumed"])
     assert killed >= 2
     done = _done_jobs(out)
-    again = subprocess.run(
-        [sys.executable, "-m", "vio.cli", "bench", "--suite", str(suite), "--jobs", "1", "--out", str(out)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    again = subprocess.run([*VIO, *_bench_args(suite, out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
     assert ("3/3 jobs done" in again.stderr) == (done < 3)  # a kill can land after the last job, before the summary
     assert (f"{done} done before, resumed" in again.stderr) == (done > 0)
@@ -143,13 +130,7 @@ def test_ctrl_c_mid_job_says_what_was_kept_and_the_rerun_resumes(tmp_path, earli
         "vio bench: interrupted",
     ]
     assert not (out / "results.json").exists()
-    again = subprocess.run(
-        [sys.executable, "-m", "vio.cli", "bench", "--suite", str(suite), "--jobs", "1", "--out", str(out)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    again = subprocess.run([*VIO, *_bench_args(suite, out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
     assert (f"{done} done before, resumed" in again.stderr) == (done > 0)
     _assert_complete(out, done)
