@@ -93,9 +93,7 @@ def load_calibration(path: str | Path) -> Calibration:
                 return read_calibration_file(path / name)
         return read_asl_calibration(path)
     if _is_opencv_file(path):
-        from vio.readers.opencv_calib import read_opencv_calibration
-
-        return read_opencv_calibration(path)
+        return _read_opencv(path)
     data = read_yaml(path)
     if "cam0" in data:
         return read_camchain(path)
@@ -121,10 +119,15 @@ def _is_opencv_file(path: Path) -> bool:
 def read_calibration_file(path: Path) -> Calibration:
     """A calibration file stored beside a capture: a Kalibr camchain or an OpenCV/ORB-SLAM FileStorage file."""
     if _is_opencv_file(path):
-        from vio.readers.opencv_calib import read_opencv_calibration
-
-        return read_opencv_calibration(path)
+        return _read_opencv(path)
     return read_camchain(path)
+
+
+def _read_opencv(path: Path) -> Calibration:
+    from vio.readers.opencv_calib import read_opencv_calibration
+
+    camera, imu, warnings = read_opencv_calibration(path)
+    return Calibration(camera, imu, 0, Path(path), warnings)
 
 
 def find_calibration(folder: Path) -> Calibration | None:

@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 
 from vio.errors import CalibrationError
-from vio.readers.calib import Calibration
 from vio.records import CameraCalib, ImuCalib
 
 log = logging.getLogger(__name__)
@@ -153,9 +152,10 @@ def _imu(fs: Any, path: Path) -> ImuCalib | None:
     return ImuCalib(g, a, gw, aw, rate)
 
 
-def read_opencv_calibration(path: str | Path) -> Calibration:
-    """The camera (and, from ORB-SLAM3 inertial settings, the IMU noise) of an OpenCV FileStorage calibration
-    (module docstring for the layouts and conventions); a one-line CalibrationError for anything else."""
+def read_opencv_calibration(path: str | Path) -> tuple[CameraCalib, ImuCalib | None, tuple[str, ...]]:
+    """The camera, the IMU noise (ORB-SLAM3 inertial settings; else None) and the warnings (what was assumed or
+    dropped) of an OpenCV FileStorage calibration (module docstring for the layouts and conventions); a one-line
+    CalibrationError for anything else. `vio.readers.calib.load_calibration` wraps them in a `Calibration`."""
     path = Path(path)
     fs = _open(path)
     try:
@@ -199,4 +199,4 @@ def read_opencv_calibration(path: str | Path) -> Calibration:
     finally:
         fs.release()
     camera = CameraCalib(w, h, fx, fy, cx, cy, dist, body_T_cam, float(rate))
-    return Calibration(camera, imu, 0, path, tuple(warn))
+    return camera, imu, tuple(warn)
