@@ -143,6 +143,6 @@ def find_calibration(folder: Path) -> Calibration | None:
 def missing_calibration_message(capture: Path) -> str:
     """The one-line error for a capture without camera calibration."""
     return (
-        f"{capture}: no camera calibration: pass --calib with a Kalibr camchain YAML or an ASL mav0 folder, "
-        "or put calib.yaml beside the capture (see docs/capture_formats.md)"
+        f"{capture}: no camera calibration: pass --calib with a Kalibr camchain YAML, an ASL mav0 folder or an "
+        "OpenCV/ORB-SLAM calibration YAML, or put calib.yaml beside the capture (see docs/capture_formats.md)"
     )
