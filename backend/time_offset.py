@@ -12,7 +12,7 @@ the images were really taken turn, between keyframes i and j, by what the gyro t
 shifted by `d`: to first order `Log(dR_gyro^T R_i^T R_j) = d (w_j - dR_gyro^T w_i)`, with dR_gyro the bias-corrected
 gyro's integral over the placed interval and w its rate at each end (averaged over +-20 ms). R_i, R_j are the
 images' own rotations: PnP on the landmarks' current estimates, started at the smoother's pose. The smoother's
-rotations would not do: they are a compromise with the gyro and hold only part of the shift (a third on the orbit),
+rotations would not do: they are a compromise with the gyro and hold only part of the shift (40-66 % on the orbit),
 and the projection residuals hold almost none of it (the poses absorb it: 3 %). The information is the angular
 acceleration: the gyro's noise over it bounds the estimate at `gyro_noise_density / sqrt(integral |dw/dt|^2 dt)`.
 

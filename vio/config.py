@@ -55,7 +55,7 @@ class CameraConfig:
     time_offset_s: float = 0.0  # t_imu = t_cam + offset (top row), on top of a calibration's timeshift_cam_imu, s
     estimate_time_offset: bool = False  # estimate the offset from the start window, then online
     time_offset_window: int = 0  # keyframe pairs in the online estimate, the latest (0: every pair since the start)
-    time_offset_lag: int = 2  # a pair: a keyframe and the one this many keyframes before it
+    time_offset_lag: int = 1  # a pair: a keyframe and the one this many keyframes before it
     time_offset_settle: int = 10  # a pair is read this many keyframes after its later keyframe entered the graph
 
 
