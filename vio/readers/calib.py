@@ -46,7 +46,7 @@ class Calibration:
     warnings: tuple[str, ...] = ()  # what was assumed or dropped while reading it; carried into Capture.warnings
 
 
-def _sibling_imu_yaml(path: Path) -> ImuCalib | None:
+def imu_yaml_beside(path: Path) -> ImuCalib | None:
     """IMU noise from a Kalibr IMU YAML beside a camchain (`imu.yaml`, `*imu*.yaml`), if there is one."""
     for cand in sorted(path.parent.glob("*.yaml")):
         if cand == path or "imu" not in cand.name.lower() or "camchain" in cand.name.lower():
@@ -67,7 +67,7 @@ def read_camchain(path: Path) -> Calibration:
         raise CalibrationError(f"{path}: not a Kalibr camchain (no 'cam0:' section)")
     camera, shift_ns = camchain_camera(path, cam)
     imu_section = data.get("imu0")
-    imu = imu_from_section(path, imu_section) if isinstance(imu_section, dict) else _sibling_imu_yaml(path)
+    imu = imu_from_section(path, imu_section) if isinstance(imu_section, dict) else imu_yaml_beside(path)
     return Calibration(camera, imu, shift_ns, path)
 
 

@@ -10,7 +10,8 @@ beside the capture is given, `logged_calibration` builds an approximate camera f
 - `body_T_cam`: the nominal rear camera of a phone whose IMU has Android's/iOS's device axes (x right, y up, z out of
   the screen) and whose sensor is read in landscape (Android `SENSOR_ORIENTATION` 90, the usual rear camera): the
   camera looks along body -z, image x along body -y, image y along body -x; no lever arm;
-- the frame rate from the frame times.
+- the frame rate from the frame times;
+- the IMU noise from a Kalibr IMU YAML in the folder (`imu.yaml`, `*imu*.yaml`) when there is one.
 
 It is an approximation (a real lens has distortion and an off-centre principal point; the logged focal length is
 the lens maker's nominal value), so the capture carries a warning that says so and how to calibrate
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vio.readers.calib import Calibration
+from vio.readers.calib import Calibration, imu_yaml_beside
 from vio.readers.tables import read_lines, read_table
 from vio.records import CameraCalib
 
@@ -91,4 +92,5 @@ def logged_calibration(
             f"{width} px wide frames (a phone camera has {PLAUSIBLE_HFOV_DEG[0]:g}-{PLAUSIBLE_HFOV_DEG[1]:g}): it may "
             "be in another image size's pixels; calibrate the camera"
         )
-    return Calibration(camera, None, 0, folder / "movie_metadata.csv")
+    imu = imu_yaml_beside(folder / "movie_metadata.csv")  # an IMU noise YAML in the folder (e.g. imu.yaml), if any
+    return Calibration(camera, imu, 0, folder / "movie_metadata.csv")

@@ -47,6 +47,17 @@ def test_android_mars_without_calibration_uses_the_logged_focal_lengths(ref, tmp
     assert "warning: " + warning in capture_info(mars, offset=False)  # what `vio info` shows
 
 
+def test_an_imu_yaml_beside_the_log_gives_its_noise(ref, tmp_path):
+    from vio.kalibr import kalibr_imu_yaml_text
+
+    mars = write_mars(ref, tmp_path / "mars", platform="iOS")
+    (mars / "calib.yaml").unlink()
+    (mars / "imu.yaml").write_text(kalibr_imu_yaml_text(ref.imu_calib))
+    cap = open_capture(mars)
+    assert cap.imu_calib.gyroscope_noise_density == pytest.approx(ref.imu_calib.gyroscope_noise_density, rel=1e-6)
+    assert not any("no IMU noise calibration" in w for w in cap.warnings)
+
+
 def test_ios_mars_metadata_gives_the_intrinsics_too(ref, tmp_path):
     mars = write_mars(ref, tmp_path / "mars", platform="iOS")  # fx, fy per frame in movie_metadata.csv ([sec])
     (mars / "calib.yaml").unlink()
