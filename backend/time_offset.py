@@ -19,7 +19,7 @@ acceleration: the gyro's noise over it bounds the estimate at `gyro_noise_densit
 Each keyframe that has settled (`time_offset_settle` keyframes after it entered the graph) is paired with the one
 `time_offset_lag` before it; least squares gives that pair's `d`, and the offset the pair was placed with plus `d`
 is its estimate of the offset. The start window's pairs give the first estimate (at initialisation; its landmarks
-are young and it falls short, e.g. 2-3 ms of 15 on the orbit), applied until `MIN_ONLINE_PAIRS` pairs were read
+are young: -2 to 18 ms for a true 15 on the 60 s orbit), applied until `MIN_ONLINE_PAIRS` pairs were read
 online; from then on the offset is the weighted mean (weight |w_j - dR^T w_i|^2) of the online pairs (the last
 `time_offset_window`, or all), applied to the keyframes that follow, at most `MAX_STEP_S` per keyframe. Its stated
 sigma is the standard error of that mean from the pairs' scatter.
