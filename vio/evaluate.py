@@ -34,7 +34,8 @@ def format_report(metrics: dict, gt_name: str = "ground truth", est_name: str = 
         f"  ATE        rmse {1e3 * m['ate_rmse_m']:.2f} mm, mean {1e3 * m['ate_mean_m']:.2f}, "
         f"median {1e3 * m['ate_median_m']:.2f}, max {1e3 * m['ate_max_m']:.2f} mm; "
         f"rotation rmse {m['ate_rot_rmse_deg']:.3f} deg",
-        f"  scale      {m['scale']:.5f} (Sim3 correction; error {m['scale_error_pct']:.3f} %)",
+        f"  scale      {m['scale']:.5f} (Sim3 correction; the estimate is {abs(m['estimate_scale_error_pct']):.3f} % "
+        f"too {'large' if m['estimate_scale_error_pct'] > 0 else 'small'})",
         f"  drift      {m['drift_pct']:.3f} % of {m['path_length_m']:.2f} m path "
         f"(final error {1e3 * m['final_error_m']:.2f} mm)",
     ]

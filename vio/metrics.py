@@ -16,7 +16,8 @@ against evo's command-line tools run as a separate program. Definitions (all on 
   estimate P against the truth Q: translation |t(E)| m and rotation angle(R(E)) deg, and `trans_pct`, the mean of
   |t(E)| over each pair's ground-truth path distance, in %; lengths without pairs are left out;
 - scale: the Sim3 Umeyama scale that maps the estimate onto the truth (evo's "scale correction"), whatever the
-  chosen alignment; `scale_error_pct` = 100 |scale - 1|;
+  chosen alignment; `scale_error_pct` = 100 |scale - 1|; `estimate_scale_error_pct` = 100 (1 / scale - 1), signed:
+  positive when the estimate is too large (the benchmark's and `vio measure`'s convention);
 - drift_pct: final position error after the chosen alignment as a percentage of the ground-truth path length;
 - coverage_s: seconds of the ground-truth span covered by associated poses (steps longer than
   `coverage_gap_s` between consecutive associated poses do not count).
@@ -229,6 +230,7 @@ def evaluate(
         "ate_rot_rmse_deg": float(np.sqrt(np.mean(rot_err**2))),
         "scale": float(sim3_scale),
         "scale_error_pct": float(100.0 * abs(sim3_scale - 1.0)),
+        "estimate_scale_error_pct": float(100.0 * (1.0 / sim3_scale - 1.0)),
         "alignment": {"scale": float(s), "R": R.tolist(), "t": t.tolist()},
         "path_length_m": path_m,
         "final_error_m": float(pos_err[-1]),

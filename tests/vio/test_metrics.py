@@ -132,6 +132,8 @@ def test_rpe_of_a_scale_error_on_a_straight_line():
         assert entry["trans_pct"] == pytest.approx(2.0, rel=1e-6)
         assert entry["rot_max_deg"] < 1e-6
     assert m["drift_pct"] == pytest.approx(2.0, rel=1e-9)
+    assert m["estimate_scale_error_pct"] == pytest.approx(2.0, rel=1e-9)  # signed: the estimate is too large
+    assert evaluate(est, gt, align="none")["estimate_scale_error_pct"] == pytest.approx(100 * (1 / 1.02 - 1))
     assert m["path_length_m"] == pytest.approx(9.975)
     np.testing.assert_allclose(path_distances(p)[-1], 9.975)
 
