@@ -189,7 +189,13 @@ def run_suite(
     finally:
         sch.close()
     wall = time.perf_counter() - t0
-    rows = [r for ci in range(len(suite.cases)) for mi in range(len(suite.methods)) for r in results[(ci, mi)]]
+    # rows carry the case's label as their scenario (resumed records too, whatever label they were written with)
+    rows = [
+        {**r, "scenario": suite.cases[ci].label}
+        for ci in range(len(suite.cases))
+        for mi in range(len(suite.methods))
+        for r in results[(ci, mi)]
+    ]
     jobs_meta = [records[(ci, mi)] for ci in range(len(suite.cases)) for mi in range(len(suite.methods))]
     meta = {"suite": suite.name, "scheduler": sch.name, "workers": sch.workers, "wall_s": wall,
             "jobs": total, "resumed": resumed, "retried": retried, "failed": failed}  # fmt: skip

@@ -73,8 +73,12 @@ class Case:
 
     @property
     def label(self) -> str:
-        """Scenario name as shown in tables."""
-        return Path(self.scenario).stem if "/" in self.scenario else self.scenario
+        """Scenario name as shown in tables, with the capture phases when there are any (so a suite's captures
+        with and without them are tabulated and paired apart)."""
+        name = Path(self.scenario).stem if "/" in self.scenario else self.scenario
+        if self.phases:
+            name += f" (still {self.still_start_s:g}+{self.still_end_s:g} s, excite {self.excite_s:g} s)"
+        return name
 
 
 @dataclass(frozen=True)

@@ -77,6 +77,7 @@ def test_scale60_suite_pairs_each_seed_with_and_without_the_phases():
     assert phased[0].phases == {"still_start_s": 3.0, "excite_s": 5.0, "still_end_s": 3.0}
     assert all(c.scenario == "orbit" and c.duration_s == 60.0 and c.imu == "phone" for c in cases)
     assert phased[0].key == "orbit_phone_s311_60s_still3+3s_excite5s" and plain[0].key == "orbit_phone_s311_60s"
+    assert phased[0].label == "orbit (still 3+3 s, excite 5 s)" and plain[0].label == "orbit"  # tabulated apart
     assert len({c.key for c in cases}) == 20
 
 
