@@ -55,7 +55,8 @@ def test_phases_of_an_orbit_are_still_then_brisk_then_the_orbit():
     assert rms == pytest.approx(EXCITE_RMS_M_S2, rel=0.05)
     p0, R0 = base.trajectory.pose(np.array([0.0, 6.0]))
     p1, R1 = sc.trajectory.pose(np.array([0.0, sc.duration_s]))
-    np.testing.assert_allclose(p1, p0, atol=1e-12) and np.testing.assert_allclose(R1, R0, atol=1e-12)
+    np.testing.assert_allclose(p1, p0, atol=1e-12)
+    np.testing.assert_allclose(R1, R0, atol=1e-12)
 
 
 def test_the_same_seed_shakes_the_same_way_and_another_seed_does_not():
