@@ -50,7 +50,7 @@ def _scene(capture: Path) -> dict:
 
 def resimulated_imu(capture: Path, drop: tuple[str, ...] = ()):
     """The capture's IMU simulated again with the terms in `drop` switched off: (ImuSeries, GroundTruth)."""
-    from vio.sim.api import _streams, load_scenario
+    from vio.sim.api import imu_noise_stream, load_scenario
     from vio.sim.imu import grade_by_name, simulate_imu
     from vio.sim.phases import PhasedMotion
 
@@ -65,8 +65,8 @@ def resimulated_imu(capture: Path, drop: tuple[str, ...] = ()):
         kw["phases"] = PhasedMotion(phases["still_start_s"], phases["excite_s"], phases["still_end_s"])
     sc = load_scenario(scene["scenario"], int(scene["seed"]), motion_s, scene["imu_grade"], **kw)
     grade = replace(grade_by_name(scene["imu_grade"]), **{TERMS[t]: 0.0 for t in drop})
-    _, ss_imu, *_ = _streams(int(scene["seed"]))
-    return simulate_imu(sc.trajectory, sc.t0_ns, sc.duration_s, sc.imu_rate_hz, grade, np.random.default_rng(ss_imu))
+    rng = np.random.default_rng(imu_noise_stream(int(scene["seed"])))
+    return simulate_imu(sc.trajectory, sc.t0_ns, sc.duration_s, sc.imu_rate_hz, grade, rng)
 
 
 def _read_imu(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -41,6 +41,11 @@ def _phases_stream(seed: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed).spawn(8)[7]
 
 
+def imu_noise_stream(seed: int) -> np.random.SeedSequence:
+    """The seed sequence of a capture's IMU noise and biases (for drawing its IMU again, `vio.bench.imu_ablation`)."""
+    return _streams(seed)[1]
+
+
 def _streams(seed: int) -> list[np.random.SeedSequence]:
     if seed < 0:
         raise SimulationError(f"seed must be non-negative, got {seed}")
