@@ -88,7 +88,7 @@ def write_ablation(capture: str | os.PathLike[str], out: str | os.PathLike[str],
     re-simulated without the terms in `drop`."""
     capture, out = Path(capture).resolve(), Path(out)
     imu, _ = resimulated_imu(capture, drop)
-    gap = same_as_capture(capture, resimulated_imu(capture)[0])
+    gap = same_as_capture(capture, imu if not drop else resimulated_imu(capture)[0])
     if gap > 1e-6:
         raise VioError(f"{capture}: the simulator no longer reproduces this capture's IMU (off by {gap:.3g})")
     if out.exists():
