@@ -48,22 +48,31 @@ def _scene(capture: Path) -> dict:
     return scene
 
 
-def resimulated_imu(capture: Path, drop: tuple[str, ...] = ()):
-    """The capture's IMU simulated again with the terms in `drop` switched off: (ImuSeries, GroundTruth)."""
-    from vio.sim.api import imu_noise_stream, load_scenario
-    from vio.sim.imu import grade_by_name, simulate_imu
+def simulated_scenario(capture: Path):
+    """The `Scenario` (trajectory, scene, sensors) a built-in simulated capture was made from, rebuilt from its
+    scene.yaml (the same seed gives the same trajectory, scene and noise streams)."""
+    from vio.sim.api import load_scenario
     from vio.sim.phases import PhasedMotion
 
-    unknown = set(drop) - set(TERMS)
-    if unknown:
-        raise VioError(f"unknown IMU error term(s) {', '.join(sorted(unknown))}; known: {', '.join(TERMS)}")
     scene = _scene(capture)
     phases = scene.get("phases")
     motion_s = float(phases["motion_s"]) if phases else float(scene["duration_s"])
     kw = {}
     if phases:
         kw["phases"] = PhasedMotion(phases["still_start_s"], phases["excite_s"], phases["still_end_s"])
-    sc = load_scenario(scene["scenario"], int(scene["seed"]), motion_s, scene["imu_grade"], **kw)
+    return load_scenario(scene["scenario"], int(scene["seed"]), motion_s, scene["imu_grade"], **kw)
+
+
+def resimulated_imu(capture: Path, drop: tuple[str, ...] = ()):
+    """The capture's IMU simulated again with the terms in `drop` switched off: (ImuSeries, GroundTruth)."""
+    from vio.sim.api import imu_noise_stream
+    from vio.sim.imu import grade_by_name, simulate_imu
+
+    unknown = set(drop) - set(TERMS)
+    if unknown:
+        raise VioError(f"unknown IMU error term(s) {', '.join(sorted(unknown))}; known: {', '.join(TERMS)}")
+    sc = simulated_scenario(capture)
+    scene = _scene(capture)
     grade = replace(grade_by_name(scene["imu_grade"]), **{TERMS[t]: 0.0 for t in drop})
     rng = np.random.default_rng(imu_noise_stream(int(scene["seed"])))
     return simulate_imu(sc.trajectory, sc.t0_ns, sc.duration_s, sc.imu_rate_hz, grade, rng)
