@@ -94,7 +94,7 @@ class VioEstimator:
                 self.admission,
                 imu,
                 camera,
-                cfg.estimator.pixel_sigma,
+                cfg.initialisation.alignment_pixel_sigma,
                 self.anchor,
             )
         else:

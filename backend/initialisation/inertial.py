@@ -35,11 +35,12 @@ class InertialInitialiser:
         admission: LandmarkAdmission,
         imu: ImuSeries,
         camera: CameraCalib,
-        pixel_sigma: float,
+        alignment_pixel_sigma: float,
         anchor: PositionAnchor | None,
     ) -> None:
         self.cfg, self.state, self.book, self.admission = cfg, state, book, admission
-        self.imu, self.camera, self.pixel_sigma, self.anchor = imu, camera, pixel_sigma, anchor
+        self.imu, self.camera, self.anchor = imu, camera, anchor
+        self.alignment_pixel_sigma = alignment_pixel_sigma  # px (config initialisation.alignment_pixel_sigma)
         self.pending: list[int] = []  # keyframes waiting for the start
 
     def add(self, k: int) -> Start | None:
@@ -84,7 +85,7 @@ class InertialInitialiser:
         if len(obs) < 10:
             st.warn(f"moving start at keyframe {ks[-1]}: only {len(obs)} tracks span the window; waiting")
             return None
-        sigma_norm = self.pixel_sigma / self.camera.fx * 2.0
+        sigma_norm = self.alignment_pixel_sigma / self.camera.fx * 2.0
         window = WindowMeasurements(ks, A_R, delta, obs, self.camera.body_T_cam, sigma_norm)
         guess = moving_start(window, st.bias.gyroscope())
         if not 0.85 < guess.gravity_norm_free / 9.81 < 1.15:
