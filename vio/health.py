@@ -18,7 +18,7 @@ found (the reasons say which), else `ok`. Only `failed` ends `vio run` with a no
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -118,7 +118,12 @@ class HealthMonitor:
         t0 = times[0] if times else 0
         spans = [
             *self._tracking_spans(),
-            *imu_only_spans(stats.keyframe_projections, set(state_t_ns), self.cfg.health.min_keyframe_projections),
+            *imu_only_spans(
+                stats.keyframe_projections,
+                set(state_t_ns),
+                self.cfg.health.min_keyframe_projections,
+                stats.still_keyframes,
+            ),
             *imu_gap_spans(imu, times, self.cfg.imu.max_gap_s),
             *recovery_spans(stats),
             *(HealthSpan("keyframe_skipped", t, t, cause[:200]) for t, cause in self.keyframes_skipped),
@@ -181,11 +186,17 @@ def runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def imu_only_spans(
-    keyframes: Sequence[tuple[int, int, int]], estimated: set[int], min_projections: int
+    keyframes: Sequence[tuple[int, int, int]],
+    estimated: set[int],
+    min_projections: int,
+    still: Collection[int] = (),
 ) -> list[HealthSpan]:
     """Spans bridged by keyframes with fewer than `min_projections` projection factors, from the last keyframe with
-    enough before them to the first one after (only keyframes with an estimate count)."""
-    kf = [(t, n) for _, t, n in keyframes if t in estimated]
+    enough before them to the first one after (only keyframes with an estimate count). A keyframe in `still` (times,
+    ns: held by a zero-velocity update or a static start) is at rest and counts as constrained: holding the phone
+    still, as `vio run`'s capture advice asks, is not a degraded run."""
+    rest = set(still)
+    kf = [(t, min_projections if t in rest else n) for _, t, n in keyframes if t in estimated]
     if not kf:
         return []
     t = np.array([x for x, _ in kf], np.int64)

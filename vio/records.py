@@ -255,3 +255,6 @@ class EstimatorStats:
     # keyframe's pose rests on the IMU (or the vision-only motion model) alone
     keyframe_projections: tuple[tuple[int, int, int], ...] = ()
     time_offset: TimeOffsetEstimate | None = None  # the camera-IMU time offset and readout (backend/time_offset.py)
+    # times (ns) of the keyframes held by a zero-velocity update or a static start: at rest, they need no visual
+    # constraint (run health does not count them as IMU alone)
+    still_keyframes: tuple[int, ...] = ()

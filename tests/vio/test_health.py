@@ -83,6 +83,17 @@ def test_imu_only_counts_only_keyframes_with_an_estimate():
     assert [(s.start_t_ns, s.end_t_ns) for s in spans] == [(20, 30)]
 
 
+def test_keyframes_at_rest_are_not_imu_alone():
+    """A still start (as `vio run`'s advice asks) gives keyframes without projections that zero-velocity updates
+    hold: not a degraded run; keyframes without either still are."""
+    kfs = ((0, 0, 0), (1, 10, 0), (2, 20, 0), (3, 30, 0), (4, 40, 5), (5, 50, 0), (6, 60, 5))
+    est = {0, 10, 20, 30, 40, 50, 60}
+    spans = imu_only_spans(kfs, est, 1, still=(0, 10, 20))
+    assert [(s.start_t_ns, s.end_t_ns) for s in spans] == [(20, 40), (40, 60)]  # 30 moved without images; 50 too
+    assert "1 keyframe(s)" in spans[0].cause
+    assert [(s.start_t_ns, s.end_t_ns) for s in imu_only_spans(kfs, est, 1)] == [(0, 40), (40, 60)]
+
+
 def test_too_many_skipped_frames_stop_the_run():
     mon = HealthMonitor(load_config(None, ["health.max_skipped_frames=0.1"]), 30)
     for i in range(3):
