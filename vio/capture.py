@@ -11,6 +11,7 @@ import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +53,9 @@ class Capture:
     format: str = "asl"  # one of `vio.readers.FORMATS`
     tracks: list[FeatureTracks] | None = None  # precomputed feature tracks (e.g. gtsam's eqvio file); no images
     stills: Stills | None = None  # full-resolution stills, when the capture has a stills stream
+    # how `vio.readers.open_capture` opened it (path, calibration, options): another process opens the same capture
+    # (`vio.track_worker`); None for a capture built in memory
+    reopen: tuple[str, str | None, dict[str, Any]] | None = None
 
     @property
     def num_frames(self) -> int:

@@ -164,6 +164,8 @@ class RunConfig:
     refine: bool = False  # final full batch Levenberg-Marquardt refinement
     max_frames: int = 0  # stop after this many frames (0 = all)
     progress: bool = True  # progress bar on a terminal
+    # the tracker in a process of its own, beside the estimator (vio/track_worker.py); the same results
+    tracker_process: bool = True
 
 
 @dataclass(frozen=True)

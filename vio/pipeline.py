@@ -36,6 +36,7 @@ from vio.errors import CaptureError, EstimationError, VioError
 from vio.health import HealthMonitor, TooManySkipped
 from vio.records import EstimatorStats, FeatureTracks, Frame, LandmarkMap, StateEstimate
 from vio.sinks import EstimateSink
+from vio.tracking import TrackColours, tracked_frames
 
 log = logging.getLogger(__name__)
 
@@ -83,66 +84,35 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-Tracked = tuple[Frame | None, FeatureTracks, np.ndarray]  # (frame or None, tracks, track ages in frames (N,))
+# (frame or None, tracks, track ages in frames (N,), the colours of new tracks (ids, RGB) when sampled elsewhere)
+Tracked = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.ndarray] | None]
 
 
-def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor) -> Iterator[Tracked]:
-    """Yield (frame or None, tracks, ages) for every frame: from the tracker, or the capture's own tracks. A frame
-    whose image fails to decode (or has the wrong size) is skipped with a warning and counted by `monitor`."""
-    velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
+def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor, viewer: bool) -> Iterator[Tracked]:
+    """Yield (frame or None, tracks, ages, new track colours or None) for every frame: the capture's own tracks, or
+    the tracker's, in a process of its own when `cfg.run.tracker_process` and the capture can be opened again there
+    (`Capture.reopen`, `vio.track_worker`: frames without an image then are the non-keyframes, unless a `viewer`
+    needs them all). A frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
     if cap.tracks is not None:
+        velocity = TrackVelocity()
         first_seen: dict[int, int] = {}
         for i, tr in enumerate(cap.tracks[:stop]):
             ages = np.array([i - first_seen.setdefault(int(j), i) for j in tr.ids], np.int64)
-            yield None, velocity.add(tr), ages
+            yield None, velocity.add(tr), ages, None
         return
-    from frontend.tracker import FeatureTracker
+    if cfg.run.tracker_process and cap.reopen is not None:
+        from vio.track_worker import tracked_in_worker
 
-    tracker = FeatureTracker(cap.camera, cfg.tracker)
-    for i in range(stop):
-        t_ns = int(cap.frame_t_ns[i])
-        try:
-            frame = Frame(t_ns, 0, _image(cap, i))
-        except CaptureError as exc:
-            log.warning("frame %d (t=%d ns) skipped: %s", i, t_ns, exc)
-            monitor.skip(t_ns, str(exc))
+        items = tracked_in_worker(cap.reopen, cfg, stop, viewer)
+    else:
+        items = tracked_frames(cap, cfg, stop)
+    for kind, payload in items:
+        if kind == "skip":
+            t_ns, cause = payload
+            log.warning("%s", cause)
+            monitor.skip(t_ns, cause.split(": ", 1)[-1])
             continue
-        tracks = velocity.add(tracker.track(frame))
-        yield frame, tracks, tracker.ages()
-
-
-def _image(cap: Capture, i: int) -> np.ndarray:
-    """Frame i's image, checked against the calibration's size (CaptureError when it cannot be used)."""
-    image = cap.load_image(i)
-    cam = cap.camera
-    if cam is not None and image.shape[:2] != (cam.height, cam.width):
-        h, w = image.shape[:2]
-        raise CaptureError(f"frame {i} is {w}x{h}, the calibration is for {cam.width}x{cam.height}", cap.root)
-    return image
-
-
-class _TrackColours:
-    """The image colour of each track where it was first seen (grey images give grey), for landmarks.ply."""
-
-    def __init__(self) -> None:
-        self._rgb: dict[int, np.ndarray] = {}
-
-    def see(self, frame: Frame, tracks: FeatureTracks) -> None:
-        new = [i for i, j in enumerate(tracks.ids.tolist()) if j not in self._rgb]
-        if not new:
-            return
-        image, uv = frame.image, tracks.uv[new]
-        h, w = image.shape[:2]
-        u = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
-        v = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
-        px = image[v, u]
-        rgb = np.repeat(px[:, None], 3, axis=1) if px.ndim == 1 else px[:, ::-1]
-        for j, c in zip(tracks.ids[new].tolist(), rgb, strict=True):
-            self._rgb[j] = c
-
-    def of(self, track_ids: np.ndarray) -> np.ndarray:
-        """(M, 3) uint8 RGB of tracks (light grey for tracks never seen in an image)."""
-        return np.array([self._rgb.get(int(j), (200, 200, 200)) for j in track_ids], np.uint8).reshape(-1, 3)
+        yield payload if len(payload) == 4 else (*payload, None)
 
 
 def _add_keyframe(est: VioEstimator, frame: Frame | None, tracks: FeatureTracks, cfg: Config) -> list[StateEstimate]:
@@ -217,19 +187,23 @@ def _run(
     n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
     stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)
     bar = _Progress(stop, cfg.run.progress)
-    colours = _TrackColours()
+    colours = TrackColours()
     monitor = HealthMonitor(cfg, stop)
     errors: list[str] = []
     failure, kind = "", EstimationError
     n_kf = n_done = 0
     t_first = t_last = None
     try:
-        for n_done, (frame, tracks, ages) in enumerate(_frames_and_tracks(cap, cfg, stop, monitor), start=1):
+        frames = _frames_and_tracks(cap, cfg, stop, monitor, bool(sinks))
+        for n_done, (frame, tracks, ages, new_colours) in enumerate(frames, start=1):
             t_first = tracks.t_ns if t_first is None else t_first
             t_last = tracks.t_ns
             monitor.frame(tracks.t_ns, len(tracks.ids))
-            if frame is not None:
+            if new_colours is not None:
+                colours.add(*new_colours)
+            elif frame is not None:
                 colours.see(frame, tracks)
+            if frame is not None:
                 for sink in sinks:
                     sink.on_frame(frame, tracks.ids, tracks.uv, ages)
             if selector.consider(tracks):

@@ -129,6 +129,8 @@ def open_capture(
         raise unreadable(exc, path) from None
     for msg in [*(problems or []), *finish_capture(cap, Path(path), strict=strict, needs=needs)]:
         cap.warn(msg)
+    cal = None if calib is None else os.fspath(calib)
+    cap.reopen = (os.fspath(path), cal, {"strict": strict, "needs": tuple(needs), **topics})
     return cap
 
 

@@ -11,35 +11,16 @@ the worker.
 
 from __future__ import annotations
 
-import pickle
-import struct
 import subprocess
 import sys
 from collections.abc import Iterator
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
 from vio.errors import SimulationError
-
-_LEN = struct.Struct("<Q")
-
-
-def _send(stream: IO[bytes], obj: Any) -> None:
-    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-    stream.write(_LEN.pack(len(data)) + data)
-    stream.flush()
-
-
-def _recv(stream: IO[bytes]) -> Any:
-    head = stream.read(_LEN.size)
-    if len(head) < _LEN.size:
-        raise EOFError
-    (n,) = _LEN.unpack(head)
-    data = stream.read(n)
-    if len(data) < n:
-        raise EOFError
-    return pickle.loads(data)
+from vio.pipes import recv as _recv
+from vio.pipes import send as _send
 
 
 def render_in_workers(scene, camera, jobs: list[tuple], workers: int) -> Iterator[Any]:

@@ -1,0 +1,75 @@
+"""The tracking frontend over a capture's frames, shared by `vio run`'s two ways of running it (in its own process,
+or in `vio.track_worker` beside the estimator): decode and check each image, track, measure the tracks' image
+velocities, and sample each new track's colour."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from frontend.track_velocity import TrackVelocity
+from vio.capture import Capture
+from vio.config import Config
+from vio.errors import CaptureError
+from vio.records import FeatureTracks, Frame
+
+
+def image_of(cap: Capture, i: int) -> np.ndarray:
+    """Frame i's image, checked against the calibration's size (CaptureError when it cannot be used)."""
+    image = cap.load_image(i)
+    cam = cap.camera
+    if cam is not None and image.shape[:2] != (cam.height, cam.width):
+        h, w = image.shape[:2]
+        raise CaptureError(f"frame {i} is {w}x{h}, the calibration is for {cam.width}x{cam.height}", cap.root)
+    return image
+
+
+def tracked_frames(cap: Capture, cfg: Config, stop: int) -> Iterator[tuple[str, Any]]:
+    """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames)) per frame, or
+    ("skip", (t_ns, cause)) for a frame whose image fails to decode (or has the wrong size)."""
+    from frontend.tracker import FeatureTracker
+
+    velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
+    tracker = FeatureTracker(cap.camera, cfg.tracker)
+    for i in range(stop):
+        t_ns = int(cap.frame_t_ns[i])
+        try:
+            frame = Frame(t_ns, 0, image_of(cap, i))
+        except CaptureError as exc:
+            yield "skip", (t_ns, f"frame {i} (t={t_ns} ns) skipped: {exc}")
+            continue
+        tracks = velocity.add(tracker.track(frame))
+        yield "frame", (frame, tracks, tracker.ages())
+
+
+class TrackColours:
+    """The image colour of each track where it was first seen (grey images give grey), for landmarks.ply."""
+
+    def __init__(self) -> None:
+        self._rgb: dict[int, np.ndarray] = {}
+
+    def see(self, frame: Frame, tracks: FeatureTracks) -> tuple[np.ndarray, np.ndarray]:
+        """Sample the new tracks' colours in `frame`; returns them: (ids (M,), RGB (M, 3) uint8)."""
+        new = [i for i, j in enumerate(tracks.ids.tolist()) if j not in self._rgb]
+        if not new:
+            return np.zeros(0, np.int64), np.zeros((0, 3), np.uint8)
+        image, uv = frame.image, tracks.uv[new]
+        h, w = image.shape[:2]
+        u = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
+        v = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
+        px = image[v, u]
+        rgb = np.repeat(px[:, None], 3, axis=1) if px.ndim == 1 else px[:, ::-1]
+        ids = tracks.ids[new]
+        self.add(ids, rgb)
+        return ids, np.asarray(rgb, np.uint8)
+
+    def add(self, ids: np.ndarray, rgb: np.ndarray) -> None:
+        """Colours sampled elsewhere (the tracker's process)."""
+        for j, c in zip(np.asarray(ids).tolist(), rgb, strict=True):
+            self._rgb.setdefault(int(j), c)
+
+    def of(self, track_ids: np.ndarray) -> np.ndarray:
+        """(M, 3) uint8 RGB of tracks (light grey for tracks never seen in an image)."""
+        return np.array([self._rgb.get(int(j), (200, 200, 200)) for j in track_ids], np.uint8).reshape(-1, 3)
