@@ -84,15 +84,15 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-# (frame or None, tracks, track ages in frames (N,), the colours of new tracks (ids, RGB) when sampled elsewhere)
+# (frame or None, tracks, track ages in frames (N,), the new tracks' colours (ids, RGB) or None without images)
 Tracked = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.ndarray] | None]
 
 
 def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor, viewer: bool) -> Iterator[Tracked]:
-    """Yield (frame or None, tracks, ages, new track colours or None) for every frame: the capture's own tracks, or
-    the tracker's, in a process of its own when `cfg.run.tracker_process` and the capture can be opened again there
-    (`Capture.reopen`, `vio.track_worker`: frames without an image then are the non-keyframes, unless a `viewer`
-    needs them all). A frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
+    """Yield (frame or None, tracks, ages, the new tracks' colours or None) for every frame: the capture's own
+    tracks, or the tracker's, in a process of its own when `cfg.run.tracker_process` and the capture can be opened
+    again there (`Capture.reopen`, `vio.track_worker`: frames without an image then are the non-keyframes, unless a
+    `viewer` needs them all). A frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
     if cap.tracks is not None:
         velocity = TrackVelocity()
         first_seen: dict[int, int] = {}
@@ -108,11 +108,11 @@ def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMoni
         items = tracked_frames(cap, cfg, stop)
     for kind, payload in items:
         if kind == "skip":
-            t_ns, cause = payload
-            log.warning("%s", cause)
-            monitor.skip(t_ns, cause.split(": ", 1)[-1])
+            t_ns, i, reason = payload
+            log.warning("frame %d (t=%d ns) skipped: %s", i, t_ns, reason)
+            monitor.skip(t_ns, reason)
             continue
-        yield payload if len(payload) == 4 else (*payload, None)
+        yield payload
 
 
 def _add_keyframe(est: VioEstimator, frame: Frame | None, tracks: FeatureTracks, cfg: Config) -> list[StateEstimate]:
@@ -201,8 +201,6 @@ def _run(
             monitor.frame(tracks.t_ns, len(tracks.ids))
             if new_colours is not None:
                 colours.add(*new_colours)
-            elif frame is not None:
-                colours.see(frame, tracks)
             if frame is not None:
                 for sink in sinks:
                     sink.on_frame(frame, tracks.ids, tracks.uv, ages)

@@ -10,7 +10,7 @@ few keyframes while the estimator solves. Results are the single-process path's,
 
 Protocol (length-prefixed pickles, `vio.pipes`): in, one ((capture path, calibration path, options), config,
 frames, every image?); out, per frame ("frame", t_ns, image or None, tracks, ages, new colour ids, their RGB) or
-("skip", t_ns, cause), then ("end",); an error is ("error", one line).
+("skip", t_ns, frame index, reason), then ("end",); an error is ("error", one line).
 """
 
 from __future__ import annotations
@@ -22,23 +22,20 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
-
 from vio.children import die_with_parent
 from vio.errors import EstimationError, VioError
 from vio.pipes import recv, send
-from vio.records import FeatureTracks, Frame
+from vio.records import Frame
 
 _F_SETPIPE_SZ = 1031  # Linux fcntl: set a pipe's capacity
 _PIPE_BYTES = 1 << 20  # 1 MiB: about three 640x480 keyframe images ahead (the default 64 KiB holds none)
-
-Item = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.ndarray] | None]
 
 
 def tracked_in_worker(
     reopen: tuple[str, str | None, dict[str, Any]], cfg: Any, stop: int, every_image: bool
 ) -> Iterator[tuple[str, Any]]:
-    """Start the worker and yield its messages: ("frame", Item) or ("skip", (t_ns, cause)). Raises VioError when the
+    """Start the worker and yield what `vio.tracking.tracked_frames` yields there: ("frame", (frame or None, tracks,
+    ages, new colours)) or ("skip", (t_ns, frame index, reason)). Raises VioError when the
     worker reports an error or stops; the worker is killed when the caller stops early."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "vio.track_worker"],
@@ -62,7 +59,7 @@ def tracked_in_worker(
             if msg[0] == "error":
                 raise VioError(msg[1])
             if msg[0] == "skip":
-                yield "skip", (msg[1], msg[2])
+                yield "skip", msg[1:]
                 continue
             _, t_ns, image, tracks, ages, cids, crgb = msg
             frame = None if image is None else Frame(t_ns, 0, image)
@@ -79,7 +76,7 @@ def main() -> int:
 
     from frontend.keyframes import KeyframeSelector
     from vio.readers import open_capture
-    from vio.tracking import TrackColours, tracked_frames
+    from vio.tracking import tracked_frames
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it stops this process
     cv2.setNumThreads(1)
@@ -88,13 +85,11 @@ def main() -> int:
     try:
         cap = open_capture(path, calib, **options)
         selector = KeyframeSelector(cfg.keyframes)
-        colours = TrackColours()
         for kind, payload in tracked_frames(cap, cfg, stop):
             if kind == "skip":
                 send(stdout, ("skip", *payload))
                 continue
-            frame, tracks, ages = payload
-            ids, rgb = colours.see(frame, tracks)
+            frame, tracks, ages, (ids, rgb) = payload
             keyframe = selector.consider(tracks)
             image = frame.image if (every_image or keyframe) else None
             send(stdout, ("frame", tracks.t_ns, image, tracks, ages, ids, rgb))

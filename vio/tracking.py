@@ -27,21 +27,23 @@ def image_of(cap: Capture, i: int) -> np.ndarray:
 
 
 def tracked_frames(cap: Capture, cfg: Config, stop: int) -> Iterator[tuple[str, Any]]:
-    """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames)) per frame, or
-    ("skip", (t_ns, cause)) for a frame whose image fails to decode (or has the wrong size)."""
+    """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames, the new tracks'
+    colours (ids, RGB))) per frame, or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to decode
+    (or has the wrong size)."""
     from frontend.tracker import FeatureTracker
 
     velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
     tracker = FeatureTracker(cap.camera, cfg.tracker)
+    colours = TrackColours()
     for i in range(stop):
         t_ns = int(cap.frame_t_ns[i])
         try:
             frame = Frame(t_ns, 0, image_of(cap, i))
         except CaptureError as exc:
-            yield "skip", (t_ns, f"frame {i} (t={t_ns} ns) skipped: {exc}")
+            yield "skip", (t_ns, i, str(exc))
             continue
         tracks = velocity.add(tracker.track(frame))
-        yield "frame", (frame, tracks, tracker.ages())
+        yield "frame", (frame, tracks, tracker.ages(), colours.see(frame, tracks))
 
 
 class TrackColours:
@@ -66,7 +68,7 @@ class TrackColours:
         return ids, np.asarray(rgb, np.uint8)
 
     def add(self, ids: np.ndarray, rgb: np.ndarray) -> None:
-        """Colours sampled elsewhere (the tracker's process)."""
+        """Colours sampled by `see` (in the tracker's process, when it runs apart)."""
         for j, c in zip(np.asarray(ids).tolist(), rgb, strict=True):
             self._rgb.setdefault(int(j), c)
 

@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 
 from vio.errors import SimulationError
-from vio.pipes import recv as _recv
-from vio.pipes import send as _send
+from vio.pipes import recv, send
 
 
 def render_in_workers(scene, camera, jobs: list[tuple], workers: int) -> Iterator[Any]:
@@ -32,22 +31,22 @@ def render_in_workers(scene, camera, jobs: list[tuple], workers: int) -> Iterato
     ]
     try:
         for p in procs:
-            _send(p.stdin, (scene, camera))
+            send(p.stdin, (scene, camera))
         ahead = 2  # jobs queued per worker
         for i in range(min(len(jobs), ahead * workers)):
-            _send(procs[i % workers].stdin, jobs[i])
+            send(procs[i % workers].stdin, jobs[i])
         for i in range(len(jobs)):
             p = procs[i % workers]
             try:
-                png = _recv(p.stdout)
+                png = recv(p.stdout)
             except EOFError:
                 raise SimulationError(f"render worker {i % workers} stopped (exit code {p.wait()})") from None
             nxt = i + ahead * workers
             if nxt < len(jobs):
-                _send(p.stdin, jobs[nxt])
+                send(p.stdin, jobs[nxt])
             yield png
         for p in procs:
-            _send(p.stdin, None)
+            send(p.stdin, None)
             p.wait()
     finally:
         for p in procs:
@@ -65,17 +64,17 @@ def main() -> int:
 
     cv2.setNumThreads(1)
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
-    scene, camera = _recv(stdin)
+    scene, camera = recv(stdin)
     renderer = Renderer(scene, camera)
     while True:
-        job = _recv(stdin)
+        job = recv(stdin)
         if job is None:
             return 0
         if len(job) == 3 and job[0] == "phone":
-            _send(stdout, render_radiance(renderer, job[1], job[2]))
+            send(stdout, render_radiance(renderer, job[1], job[2]))
             continue
         world_T_cam, seed = job
-        _send(stdout, encode_png(renderer.render(world_T_cam, np.random.default_rng(seed))))
+        send(stdout, encode_png(renderer.render(world_T_cam, np.random.default_rng(seed))))
 
 
 if __name__ == "__main__":
