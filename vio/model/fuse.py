@@ -17,7 +17,10 @@ behind an observed surface in at least one view, in at least as many views as sa
 through by fewer than `min_free_views` views (the part's interior, and cavities the cameras cannot see into, such as
 an undercut slot: every view that looks at them sees the part in front); outside otherwise: seen through, or never
 observed (a table without depth stays outside; the part's "shadow" on it is behind the part from one side only,
-without depth from the other); outside below the support plane, so the part's base closes on the plane. Two passes:
+without depth from the other); outside below the support plane, so the part's base closes on the plane. In the
+lowest `base_band_m` above the plane, a voxel that no depth measured takes the side of the voxel above it at that
+height (`_base_columns`): beside the base the table is seen at grazing angles and gives no depth, so by votes alone
+the space there was solid (a flap along the base). Two passes:
 a coarse grid finds the band around the surface and the occupancy elsewhere, then the band alone is fused at
 `voxel_m`.
 """
