@@ -43,7 +43,7 @@ class LandmarkAdmission:
         tr = self.book.tracks[j]
         for kk, uv in tr.views.items():
             if kk in world_T_body and (k_now is None or self.state.smoother.has(X(kk))) or kk == k_now:
-                self.state.add_projection(graph, kk, j, uv)
+                self.state.add_projection(graph, kk, j, uv, tr.run_start(kk))
         tr.admitted = True
         return p
 

@@ -66,7 +66,7 @@ class VioEstimator:
         self.state = GraphState(
             Smoother(cfg.smoother),
             fb.calibration(camera),
-            fb.pixel_noise(cfg.estimator.pixel_sigma, cfg.estimator.huber_k),
+            fb.PixelNoise(cfg.estimator.pixel_sigma, cfg.estimator.pixel_sigma_per_s, cfg.estimator.huber_k),
             3 * max(cfg.landmarks.max_track_keyframes, 10),
             self._warn,
         )
@@ -313,7 +313,7 @@ class VioEstimator:
                 if self._consistent(j, world_T_body, tr.views[k], gate):
                     if old:
                         self.old.revive(j, graph, values)
-                    st.add_projection(self.reidentification.route(graph, j, k), k, j, tr.views[k])
+                    st.add_projection(self.reidentification.route(graph, j, k), k, j, tr.views[k], tr.run_start(k))
                     stamps[L(j)] = t_s
                 else:
                     self._split_track(j, k)

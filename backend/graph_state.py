@@ -30,7 +30,7 @@ class GraphState:
         self,
         smoother: Smoother,
         calibration: tuple[gtsam.Cal3_S2, gtsam.Pose3],
-        pixel_noise: gtsam.noiseModel.Base,
+        pixel_noise: fb.PixelNoise,
         window_keyframes: int,
         warn: Warn,
     ) -> None:
@@ -81,9 +81,13 @@ class GraphState:
         graph.add(factor)
         self.all_factors.add(factor)
 
-    def add_projection(self, graph: gtsam.NonlinearFactorGraph, k: int, j: int, uv: np.ndarray) -> None:
-        """The projection factor of landmark j seen at undistorted pixel uv (2,) in keyframe k."""
-        self.add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.pixel_noise))
+    def add_projection(
+        self, graph: gtsam.NonlinearFactorGraph, k: int, j: int, uv: np.ndarray, since_k: int | None = None
+    ) -> None:
+        """The projection factor of landmark j seen at undistorted pixel uv (2,) in keyframe k; `since_k` is the
+        keyframe where the track's unbroken run of views that includes k began (its age sets the noise)."""
+        age_s = 0.0 if since_k is None else 1e-9 * (self.t_ns[k] - self.t_ns.get(since_k, self.t_ns[k]))
+        self.add(graph, fb.projection_factor(uv, k, j, self.K, self.body_P_cam, self.pixel_noise.at(age_s)))
         self.num_obs[j] = self.num_obs.get(j, 0) + 1
         self.last_obs[j] = k
         self.projections[k] = self.projections.get(k, 0) + 1

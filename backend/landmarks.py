@@ -24,6 +24,13 @@ class Track:
     admitted: bool = False
     rejected_until: int = -1  # do not retry triangulation before this many views
 
+    def run_start(self, k: int) -> int:
+        """The first keyframe of the unbroken run of views (consecutive keyframes) that ends at or passes k."""
+        start = k
+        while start - 1 in self.views:
+            start -= 1
+        return start
+
 
 def camera_poses(world_T_body: dict[int, np.ndarray], body_T_cam: np.ndarray, ks: list[int]) -> np.ndarray:
     """(M, 4, 4) world_T_cam for keyframes ks."""

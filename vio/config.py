@@ -69,7 +69,10 @@ class ImuConfig:
 @dataclass(frozen=True)
 class EstimatorConfig:
     mode: str = "visual_inertial"  # visual_inertial | vision_only (projection factors only; scale unknown, Sim3 only)
-    pixel_sigma: float = 1.0  # projection noise, px
+    pixel_sigma: float = 1.0  # projection noise, px (of a view at the start of its track's run; see pixel_sigma_per_s)
+    # growth of the projection noise with the view's age (time since its track's run of keyframe views began), px/s;
+    # 0: every view has pixel_sigma (backend/factors.py PixelNoise)
+    pixel_sigma_per_s: float = 0.0
     huber_k: float = 1.345  # robust loss threshold, in sigmas
     scale_uncertainty: bool = True  # at the end, the scale's standard deviation from the graph's marginals
 

@@ -104,3 +104,27 @@ def test_admission_rejects_low_parallax_and_drops_an_outlier_view():
         book.observe(k, np.array([2]), uv[k][None])
     assert np.allclose(book.try_admit(2, poses), p, atol=1e-6)
     assert sorted(book.tracks[2].views) == [0, 1, 2, 4]
+
+
+def test_pixel_noise_grows_with_the_views_age_and_shares_models():
+    import gtsam
+
+    from backend.factors import PixelNoise
+
+    flat = PixelNoise(1.0, 0.0, 1.345)
+    assert flat.at(0.0) is flat.at(5.0)  # one model for every view
+    assert flat.at(3.0).noise().sigmas()[0] == 1.0
+    grow = PixelNoise(0.3, 0.4, 1.345)
+    sig = [float(grow.at(a).noise().sigmas()[0]) for a in (0.0, 0.5, 2.0, 2.01)]
+    assert np.allclose(sig, [0.3, 0.5, 1.1, 1.1])  # 0.3 + 0.4 a, rounded to 0.05 px
+    assert grow.at(2.0) is grow.at(2.01)  # same level, same model
+    assert isinstance(grow.at(-1.0), gtsam.noiseModel.Robust) and grow.sigma(-1.0) == 0.3
+
+
+def test_a_views_run_starts_after_its_tracks_last_gap():
+    from backend.landmarks import Track
+
+    tr = Track()
+    for k in (3, 4, 5, 9, 10, 11):  # seen at 3-5, lost, re-identified at 9-11
+        tr.views[k] = np.zeros(2)
+    assert [tr.run_start(k) for k in (3, 5, 9, 11)] == [3, 3, 9, 9]

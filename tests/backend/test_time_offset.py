@@ -34,7 +34,7 @@ def _imu(rate_rad_s: float = 0.5, n: int = 300) -> ImuSeries:
 def _timing(cfg: CameraConfig, camera: CameraCalib | None = None) -> CameraTiming:
     camera = camera or _camera()
     state = GraphState(
-        Smoother(SmootherConfig()), fb.calibration(camera), fb.pixel_noise(1.0, 1.345), 30, lambda msg: None
+        Smoother(SmootherConfig()), fb.calibration(camera), fb.PixelNoise(1.0, 0.0, 1.345), 30, lambda msg: None
     )
     return CameraTiming(cfg, camera, _imu(), state, enabled=True)
 
