@@ -243,3 +243,23 @@ def test_registration_centres_a_short_box_with_a_rough_top(cads):
     short = int(np.argmin(means.sum(axis=1)))  # the model's short axis, wherever the registration put it
     assert means[short] == pytest.approx([-0.71, -0.71], abs=0.1)  # half of the 1.42 mm each side
     assert np.delete(means, short, axis=0) == pytest.approx(np.full((2, 2), -0.255), abs=0.03)
+
+
+def test_mesh_quality_is_checked_in_the_files_own_coordinates(cads, tmp_path, monkeypatch):
+    """Moved into the CAD's frame in floating point, the coplanar faces of a flat base can touch and read as
+    crossing (67 on one benchmark model that has none): the quality counts are the file's, before registration."""
+    import vio.model.report as report_module
+
+    cad = cads["cube"]
+    write_stl(tmp_path / "cad.stl", cad.vertices, cad.faces, "cube, mm")
+    vertices, _ = _moved(np.asarray(cad.vertices), np.random.default_rng(8))
+    write_stl(tmp_path / "model.stl", vertices, cad.faces, "the cube moved, mm")
+    seen = []
+
+    def spy(v, f):
+        seen.append(np.array(v, float))
+        return mesh_quality(v, f)
+
+    monkeypatch.setattr(report_module, "mesh_quality", spy)
+    compare(tmp_path / "model.stl", tmp_path / "cad.stl", tmp_path / "out", samples=5_000)
+    assert len(seen) == 1 and np.allclose(np.sort(seen[0], axis=0), np.sort(vertices, axis=0), atol=1e-4)
