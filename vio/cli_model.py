@@ -30,7 +30,8 @@ def _cmd_model(args: argparse.Namespace) -> int:
     from vio.model.build import ModelOptions, model_capture, model_from_image_set
 
     voxel_m = args.voxel_mm * 1e-3
-    opts = ModelOptions(args.source, args.max_views, voxel_m, roi_world=args.roi, adjust=args.adjust)
+    opts = ModelOptions(args.source, args.max_views, voxel_m, roi_world=args.roi, adjust=args.adjust,
+                        backdrop_below=args.backdrop_below)  # fmt: skip
     try:
         if args.middlebury or args.colmap:
             res = model_from_image_set(
@@ -117,6 +118,9 @@ def add_model_commands(sub: argparse._SubParsersAction) -> None:
         "--no-adjust", dest="adjust", action="store_false", help="use the poses as given (no bundle adjustment)"
     )
     p.add_argument("--roi", type=_box, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help="region of interest (world, m)")
+    p.add_argument("--backdrop-below", type=int, default=0, metavar="GREY",
+                   help="an object shot against black: image regions at or below this grey level (0-255) are empty "
+                        "space (silhouette carving; 0: off)")  # fmt: skip
     p.add_argument("--middlebury", metavar="PAR_TXT", help="images with known cameras: a Middlebury *_par.txt")
     p.add_argument("--colmap", metavar="MODEL_DIR", help="images with known cameras: a COLMAP text model")
     p.add_argument("--images", metavar="DIR", help="the images of --colmap")

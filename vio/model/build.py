@@ -42,6 +42,7 @@ class ModelOptions:
     dense_method: str = "sweep"  # sweep | sgbm (vio.model.dense)
     adjust: bool = True  # bundle-adjust the views (vio.model.adjust) before stereo, anchored to their positions
     seed: int = 0  # RANSAC
+    backdrop_below: int = 0  # > 0: image regions at or below this grey level are an empty backdrop (vio.model.fuse)
 
 
 @dataclass
@@ -142,7 +143,7 @@ def model_from_views(
         plane, roi, refit = isolate.refine_plane(plane, roi, views, maps, rng)
         if not refit["refined"]:
             log.info("support plane kept from the landmarks: %s", refit["reason"])
-    volume = fuse.fuse_depth_maps(views, maps, roi, voxel_m=options.voxel_m)
+    volume = fuse.fuse_depth_maps(views, maps, roi, voxel_m=options.voxel_m, backdrop_below=options.backdrop_below)
     points, colours = fuse.fused_points(views, maps, volume)
     t0 = _timed(timings, "fuse", t0)
     mesh_world = mesh.mesh_from_volume(volume, frame="world")

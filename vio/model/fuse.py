@@ -237,10 +237,13 @@ def _integrate(
     cam_T_support: np.ndarray,
     trunc_m: float,
     holes: tuple[np.ndarray, np.ndarray] | None = None,
+    empty: np.ndarray | None = None,
 ) -> None:
     """Add one view's observations (`prepare_depth`) of voxel centres (3, N) float32, support frame, to `acc`.
     `holes` (same grid as the depth, `hole_bounds`) closes small holes for the free and behind tests only (a
-    voxel in a hole's ray is free in front of the nearest depth around it, behind the farthest one)."""
+    voxel in a hole's ray is free in front of the nearest depth around it, behind the farthest one). `empty` (same
+    grid, bool) marks pixels whose whole ray is known to be empty (the backdrop of a silhouette): a voxel seen there
+    without a depth is free."""
     d, weight, K = images
     h, w = d.shape
     R = cam_T_support[:3, :3].astype(np.float32)
@@ -264,6 +267,10 @@ def _integrate(
         free = sdf > trunc_m
         behind = sdf < -trunc_m
         hole_free = None
+        if empty is not None:  # the backdrop: seen through
+            through = unknown & empty.ravel().take(pix)
+            free |= through
+            unknown &= ~through
         if holes is not None:  # a hole in a surface: free in front of the depths around it, behind behind them
             hole_behind = unknown & (holes[1].ravel().take(pix) - z < -trunc_m)
             hole_free = unknown & (holes[0].ravel().take(pix) - z > trunc_m)
@@ -278,6 +285,27 @@ def _integrate(
         acc.free_weight[sl] += np.where(free, wt, zero) if hole_free is None else np.where(free & ~hole_free, wt, zero)
         acc.sdf[sl] += np.where(near, wt * sdf * inv_trunc, zero)
         acc.weight[sl] += np.where(near, wt, zero)
+
+
+def backdrop_mask(image: np.ndarray, level: int, min_area: float = 0.005, margin_px: int = 1) -> np.ndarray:
+    """(H, W) bool: the backdrop of an object shot against black. Pixels at or below grey `level`, in connected
+    regions of at least `min_area` of the image (dark crevices of the object are small), eroded by `margin_px` (the
+    silhouette's soft edge stays unknown)."""
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    dark = (grey <= level).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=8)
+    big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= min_area * dark.size)
+    keep = np.isin(labels, big[big > 0]).astype(np.uint8)
+    k = 2 * margin_px + 1
+    return cv2.erode(keep, np.ones((k, k), np.uint8)).astype(bool)
+
+
+def _on_grid(mask: np.ndarray | None, window: tuple[slice, slice], step: int) -> np.ndarray | None:
+    """A full-image mask on `prepare_depth`'s grid (every `step`-th pixel of the window)."""
+    if mask is None:
+        return None
+    rows, cols = window
+    return mask[slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)]
 
 
 def _base_columns(tsdf: np.ndarray, z0_m: float, voxel_m: float, band_m: float) -> None:
@@ -327,11 +355,14 @@ def fuse_depth_maps(
     fill_px: float = 16.0,
     fill_weight: float = 0.3,
     base_band_m: float = 4e-3,
+    backdrop_below: int = 0,
 ) -> FusedVolume:
     """Fuse depth maps (z-depth per pixel of `views[dm.view]`) into a FusedVolume over `roi` (voxel edge
     `voxel_m` m, truncation `trunc_voxels` voxels). Holes of up to 2 `fill_px` pixels in a smooth surface are
     filled with the plane through the depths around them, at `fill_weight` times the weight of a measured depth
-    (`fill_holes`). See the module docstring for the rule."""
+    (`fill_holes`). With `backdrop_below` > 0, large image regions at or below that grey level are a backdrop that
+    every ray through them crosses empty (`backdrop_mask`: silhouette carving, for objects shot against black).
+    See the module docstring for the rule."""
     if not depth_maps:
         raise ModelError("no depth maps to fuse")
     f = int(coarse_factor)
@@ -358,8 +389,10 @@ def fuse_depth_maps(
         if window is None:
             continue
         images = prepare_depth(view, dm, trunc_m, step, window, fill_px, fill_weight)
-        _integrate(coarse, centres_c, images, cam_T_support, trunc_c, hole_bounds(images[0], hole_px / step))
-        prepared.append((dm, view, cam_T_support, window))
+        backdrop = backdrop_mask(view.image, backdrop_below) if backdrop_below > 0 else None
+        _integrate(coarse, centres_c, images, cam_T_support, trunc_c, hole_bounds(images[0], hole_px / step),
+                   _on_grid(backdrop, window, step))  # fmt: skip
+        prepared.append((dm, view, cam_T_support, window, backdrop))
     if not prepared:
         raise ModelError("no depth map sees the region of interest")
     field_c = coarse.field(min_free_views).reshape(shape_c)
@@ -375,9 +408,10 @@ def fuse_depth_maps(
     fine_ijk = (cells[:, None, :] * f + offsets[None, :, :]).reshape(-1, 3)
     centres = np.ascontiguousarray((origin + fine_ijk * voxel_m).T, dtype=np.float32)
     fine = _Accumulator.zeros(centres.shape[1])
-    for dm, view, cam_T_support, window in prepared:
+    for dm, view, cam_T_support, window, backdrop in prepared:
         images = prepare_depth(view, dm, trunc_m, 1, window, fill_px, fill_weight)
-        _integrate(fine, centres, images, cam_T_support, trunc_m, hole_bounds(images[0], hole_px))
+        _integrate(fine, centres, images, cam_T_support, trunc_m, hole_bounds(images[0], hole_px),
+                   _on_grid(backdrop, window, 1))  # fmt: skip
     tsdf = np.repeat(np.repeat(np.repeat(np.where(sign, 1.0, -1.0).astype(np.float32), f, 0), f, 1), f, 2)
     ii = fine_ijk.astype(np.int64)
     tsdf[ii[:, 0], ii[:, 1], ii[:, 2]] = fine.field(min_free_views)
