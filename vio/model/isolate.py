@@ -13,6 +13,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from vio.errors import ModelError
@@ -100,7 +101,8 @@ def support_plane_from_depth(
     within 10 deg of it; else up is guessed from the cameras (they look down at the part: mean camera centre minus
     the look-at point) and RANSAC within 30 deg. The plane is accepted only when at most `max_below` of the points
     near the part (within 0.3 x the cameras' median horizontal distance from the look-at point) lie more than
-    3 mm below it: a part stands on its support. Otherwise, with a known up, the plane is the horizontal one under
+    3 mm below it under the part (`_below_under_part`; a cloth draping lower around it is no objection): a part
+    stands on its support. Otherwise, with a known up, the plane is the horizontal one under
     those points (the lowest 1 mm height slice holding a fifth of their typical density). Raises ModelError when
     neither gives a plane."""
     target = look_at_point(views)
@@ -117,7 +119,7 @@ def support_plane_from_depth(
         raise ModelError(f"no support plane: {len(near)} depth points near where the cameras look")
     try:
         plane = support_plane(pts, up, rng, max_tilt_deg=10.0 if known else 30.0)
-        below = float(np.mean(plane.height(near) < -3e-3))
+        below = _below_under_part(plane, near)
         if below <= max_below:
             return plane
         reason = f"{100 * below:.0f} % of the part's points below the RANSAC plane"
@@ -134,6 +136,27 @@ def support_plane_from_depth(
     resid = near @ up - d
     rms = float(np.sqrt(np.mean(resid[np.abs(resid) < 1e-3] ** 2))) if (np.abs(resid) < 1e-3).any() else 0.0
     return SupportPlane(normal=up, d_m=d, inlier_rms_m=rms)
+
+
+def _below_under_part(plane: SupportPlane, points: np.ndarray, cell_m: float = 5e-3, body_m: float = 0.01) -> float:
+    """Share of the points under the part that lie more than 3 mm below the plane. Under the part: in the cells
+    (`cell_m`, on the plane, grown by one) of the points standing more than `body_m` above it. A plane through the
+    middle of the part has the part's lower points below it there; the true support only noise (the Middlebury
+    temple's cloth drapes lower around the temple: 9 % of all the points near it lie below its plane)."""
+    h = plane.height(points)
+    e1 = np.cross(plane.normal, [1.0, 0.0, 0.0] if abs(plane.normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    uv = points @ np.stack([e1, np.cross(plane.normal, e1)]).T
+    body = h > body_m
+    if body.sum() < _MIN_POINTS:
+        return float(np.mean(h < -3e-3))
+    lo = uv.min(axis=0)
+    ij = ((uv - lo) / cell_m).astype(int)
+    grid = np.zeros(ij.max(axis=0) + 1, bool)
+    grid[ij[body, 0], ij[body, 1]] = True
+    grid = ndimage.binary_dilation(grid)
+    under = grid[ij[:, 0], ij[:, 1]]
+    return float(np.mean(h[under] < -3e-3))
 
 
 def look_at_point(views: Sequence[View]) -> np.ndarray:
