@@ -179,8 +179,7 @@ def prepare_depth(
 
     With a = fx dz/du, b = fy dz/dv and the ray r = (x, y, 1), the normal is (-a, -b, a x + b y + z) and
     cos = z / (|n| |r|)."""
-    rows, cols = window or (slice(None), slice(None))
-    rows, cols = slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)
+    rows, cols = _grid(window, step)
     d, valid, med = despeckle(depth.depth_m[rows, cols], speckle_m)
     holes = fill_holes(d, valid, fill_px / step, 0.25 * speckle_m)
     h, w = d.shape
@@ -300,12 +299,15 @@ def backdrop_mask(image: np.ndarray, level: int, min_area: float = 0.005, margin
     return cv2.erode(keep, np.ones((k, k), np.uint8)).astype(bool)
 
 
+def _grid(window: tuple[slice, slice] | None, step: int) -> tuple[slice, slice]:
+    """(rows, columns) of every `step`-th pixel of the window (the whole image for None): `prepare_depth`'s grid."""
+    rows, cols = window or (slice(None), slice(None))
+    return slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)
+
+
 def _on_grid(mask: np.ndarray | None, window: tuple[slice, slice], step: int) -> np.ndarray | None:
-    """A full-image mask on `prepare_depth`'s grid (every `step`-th pixel of the window)."""
-    if mask is None:
-        return None
-    rows, cols = window
-    return mask[slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)]
+    """A full-image mask on `prepare_depth`'s grid."""
+    return None if mask is None else mask[_grid(window, step)]
 
 
 def _base_columns(tsdf: np.ndarray, z0_m: float, voxel_m: float, band_m: float) -> None:

@@ -143,10 +143,9 @@ def _below_under_part(plane: SupportPlane, points: np.ndarray, cell_m: float = 5
     (`cell_m`, on the plane, grown by one) of the points standing more than `body_m` above it. A plane through the
     middle of the part has the part's lower points below it there; the true support only noise (the Middlebury
     temple's cloth drapes lower around the temple: 9 % of all the points near it lie below its plane)."""
-    h = plane.height(points)
-    e1 = np.cross(plane.normal, [1.0, 0.0, 0.0] if abs(plane.normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    uv = points @ np.stack([e1, np.cross(plane.normal, e1)]).T
+    T = _support_frame(plane, points.mean(axis=0), np.array([1.0, 0.0, 0.0]))
+    local = (points - T[:3, 3]) @ T[:3, :3]
+    uv, h = local[:, :2], local[:, 2]
     body = h > body_m
     if body.sum() < _MIN_POINTS:
         return float(np.mean(h < -3e-3))
