@@ -119,6 +119,10 @@ class InitialisationConfig:
     # bearing noise the moving start's linear alignment assumes, px: its rows are linearised (depths unknown), so
     # their error is that of the linearisation, not the tracker's (`estimator.pixel_sigma`, the graph's pixel noise)
     alignment_pixel_sigma: float = 1.0
+    # moving start: the gyro bias from the images' own rotations before the closed-form alignment (VINS-Mono's
+    # step; backend/initialisation/gyro_bias.py); an estimate larger than gyro_bias_max_rad_s is not believed
+    gyro_bias_from_images: bool = True
+    gyro_bias_max_rad_s: float = 0.3
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from backend.admission import LandmarkAdmission
 from backend.anchoring import PositionAnchor
 from backend.graph_state import GraphState
 from backend.initialisation.alignment import InitialGuess, WindowMeasurements, moving_start, static_start
+from backend.initialisation.gyro_bias import gyro_bias_from_images
 from backend.initialisation.window import Start, elapsed_ms, start_window
 from backend.keys import B, V, X
 from backend.landmarks import LandmarkBook
@@ -71,23 +72,20 @@ class InertialInitialiser:
             T = np.eye(4)
             T[:3, :3] = world_R_body
             return InitialGuess({k: T for k in ks}, {k: np.zeros(3) for k in ks}, bias_gyro, np.zeros(3), {}, "static")
-        A_R = {ks[0]: np.eye(3)}
-        delta = {}
-        for a, b in zip(ks[:-1], ks[1:], strict=True):
-            pim = st.pims[b]
-            A_R[b] = A_R[a] @ pim.deltaRij().matrix()
-            delta[b] = (np.asarray(pim.deltaPij()), np.asarray(pim.deltaVij()), pim.deltaTij())
+        in_window = set(ks)
         obs = {}
         for j, tr in self.book.tracks.items():
-            views = {k: self.book.normalized(uv)[0] for k, uv in tr.views.items() if k in A_R}
+            views = {k: self.book.normalized(uv)[0] for k, uv in tr.views.items() if k in in_window}
             if len(views) >= 3:
                 obs[j] = views
         if len(obs) < 10:
             st.warn(f"moving start at keyframe {ks[-1]}: only {len(obs)} tracks span the window; waiting")
             return None
+        bias_gyro = self._gyro_bias(ks, obs)
+        A_R, delta = self._rotations_and_deltas(ks, bias_gyro)
         sigma_norm = self.alignment_pixel_sigma / self.camera.fx * 2.0
         window = WindowMeasurements(ks, A_R, delta, obs, self.camera.body_T_cam, sigma_norm)
-        guess = moving_start(window, st.bias.gyroscope())
+        guess = moving_start(window, bias_gyro)
         if not 0.85 < guess.gravity_norm_free / 9.81 < 1.15:
             st.warn(
                 f"moving start at keyframe {ks[-1]}: gravity {guess.gravity_norm_free:.2f} m/s^2 from the linear "
@@ -95,6 +93,56 @@ class InertialInitialiser:
             )
             return None
         return guess
+
+    def _gyro_bias(self, ks: list[int], obs: dict[int, dict[int, np.ndarray]]) -> np.ndarray:
+        """The gyro bias the moving start integrates with: from the images' rotations when they give it
+        (`initialisation.gyro_bias_from_images`), else the current estimate."""
+        st = self.state
+        current = np.asarray(st.bias.gyroscope(), float)
+        if not self.cfg.gyro_bias_from_images:
+            return current
+        pims = [st.pims[b] for b in ks[1:]]
+        t_s = [st.t_ns[k] * 1e-9 for k in ks]
+        est = gyro_bias_from_images(ks, t_s, pims, obs, self.camera.body_T_cam, current)
+        if est is None:
+            log.info("moving start at keyframe %d: the images give no rotations for the gyro bias", ks[-1])
+            return current
+        step = float(np.linalg.norm(est.bias - current))
+        if step > self.cfg.gyro_bias_max_rad_s:
+            st.warn(
+                f"moving start at keyframe {ks[-1]}: the images' rotations ask for a gyro bias of "
+                f"{np.linalg.norm(est.bias):.3f} rad/s, more than {self.cfg.gyro_bias_max_rad_s} rad/s; not used"
+            )
+            return current
+        log.info(
+            "moving start at keyframe %d: gyro bias from %d image rotations (%.3f, %.3f, %.3f) rad/s; "
+            "image-gyro disagreement %.2f -> %.2f deg rms",
+            ks[-1],
+            est.pairs,
+            *est.bias,
+            est.rms_before_deg,
+            est.rms_after_deg,
+        )
+        return est.bias
+
+    def _rotations_and_deltas(
+        self, ks: list[int], bias_gyro: np.ndarray
+    ) -> tuple[dict[int, np.ndarray], dict[int, tuple[np.ndarray, np.ndarray, float]]]:
+        """Each keyframe's rotation in the first's body frame and the IMU deltas from the keyframe before,
+        corrected (first order, gtsam's) from the bias the pims were integrated with to `bias_gyro`."""
+        st = self.state
+        bias = gtsam.imuBias.ConstantBias(np.zeros(3), np.asarray(bias_gyro, float))
+        A_R = {ks[0]: np.eye(3)}
+        delta = {}
+        for a, b in zip(ks[:-1], ks[1:], strict=True):
+            pim = st.pims[b]
+            at_hat = pim.predict(gtsam.NavState(), pim.biasHat())
+            at_new = pim.predict(gtsam.NavState(), bias)
+            A_R[b] = A_R[a] @ at_new.attitude().matrix()
+            dP = np.asarray(pim.deltaPij()) + at_new.position() - at_hat.position()
+            dV = np.asarray(pim.deltaVij()) + at_new.velocity() - at_hat.velocity()
+            delta[b] = (dP, dV, pim.deltaTij())
+        return A_R, delta
 
     def _window_graph(self, ks: list[int], guess: InitialGuess) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         st, cfg = self.state, self.cfg
