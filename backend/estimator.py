@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 
 # Preintegrate(t0_ns, t1_ns, bias) -> object with `.pim` (PreintegratedCombinedMeasurements) and `.gap` (bool).
 Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
+_MIN_DEPTH_M = 0.05  # a landmark's new view must be at least this far in front of the camera, m
+_EXACT_MARGIN = 1e-6  # px and m: the all-at-once reprojection decides only when this far from a threshold
 
 
 class VioEstimator:
@@ -302,7 +304,7 @@ class VioEstimator:
         """Keyframe k's views: projection factors on admitted landmarks that they agree with (a disagreeing view
         starts a new track segment), and admission of the tracks that are now well triangulated."""
         st, smoother = self.state, self.state.smoother
-        poses = None
+        poses = seen = None
         for j in ids.tolist():
             tr = self.book.tracks[j]
             if tr.admitted:
@@ -310,7 +312,8 @@ class VioEstimator:
                 if old and self.old.position(j) is None:
                     continue
                 gate = self.reidentification.gate_px(j, self.cfg.landmarks.max_reprojection_px)
-                if self._consistent(j, world_T_body, tr.views[k], gate):
+                seen = self._reprojections(k, ids, world_T_body) if seen is None else seen
+                if self._consistent(j, world_T_body, tr.views[k], gate, seen[j]):
                     if old:
                         self.old.revive(j, graph, values)
                     st.add_projection(self.reidentification.route(graph, j, k), k, j, tr.views[k], tr.run_start(k))
@@ -328,13 +331,42 @@ class VioEstimator:
                 self.reidentification.on_admit(j, p)
                 stamps[L(j)] = t_s
 
-    def _consistent(self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float) -> bool:
-        """A new view of landmark j reprojects within `gate_px` from the predicted pose."""
+    def _reprojections(self, k: int, ids: np.ndarray, world_T_body: np.ndarray) -> dict[int, tuple[float, float]]:
+        """Landmark id -> (reprojection error px, depth m) of keyframe k's view of it from the predicted pose, for
+        every admitted landmark among `ids` that has a position (all at once: one call per landmark cost more)."""
+        js, pts, fresh = [], [], []
+        for j in ids.tolist():
+            if not self.book.tracks[j].admitted:
+                continue
+            p = self.old.position(j)
+            if p is None and not self.state.smoother.has(L(j)):
+                continue
+            js.append(j)
+            pts.append(p)
+            if p is None:
+                fresh.append(len(js) - 1)
+        if fresh:
+            points = self.state.smoother.estimate_points([L(js[i]) for i in fresh])
+            for i, p in zip(fresh, points, strict=True):
+                pts[i] = p
+        uv = np.array([self.book.tracks[j].views[k] for j in js]).reshape(-1, 2)
+        err, depth = self.book.reprojections_px(world_T_body, np.array(pts).reshape(-1, 3), uv)
+        return dict(zip(js, zip(err.tolist(), depth.tolist(), strict=True), strict=True))
+
+    def _consistent(
+        self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float, seen: tuple[float, float]
+    ) -> bool:
+        """A new view of landmark j reprojects within `gate_px` from the predicted pose. `seen` is the error and
+        depth from `_reprojections`; within `_EXACT_MARGIN` of a threshold (or not finite) they are computed again
+        one landmark at a time, so the decision is the same to the last bit as it always was."""
+        err, depth = seen
+        if abs(err - gate_px) > _EXACT_MARGIN and abs(depth - _MIN_DEPTH_M) > _EXACT_MARGIN:
+            return depth > _MIN_DEPTH_M and err <= gate_px
         p = self.old.position(j)
         if p is None:
             p = self.state.smoother.estimate_keys([L(j)]).atPoint3(L(j))
         err, depth = self.book.reprojection_px(world_T_body, p, uv)
-        return depth > 0.05 and err <= gate_px
+        return depth > _MIN_DEPTH_M and err <= gate_px
 
     def _split_track(self, j: int, k: int) -> None:
         """Track drift: the view of keyframe k disagrees with landmark j, so it starts a new landmark."""

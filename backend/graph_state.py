@@ -63,8 +63,8 @@ class GraphState:
             self.values.insert(key, value)
 
     def absorb(self, est: gtsam.Values) -> None:
-        for key in est.keys():
-            self.set(key, value_of(est, key))
+        """Copy every value of `est` into `values` (inserted or replaced), in one call into gtsam."""
+        self.values.insert_or_assign(est)
 
     def sync(self) -> None:
         """Pull the full smoother estimate (every keyframe and landmark) into `values`."""

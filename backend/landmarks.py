@@ -133,6 +133,19 @@ class LandmarkBook:
         proj, z = project(Twc, p_world, self.K)
         return float(np.linalg.norm(proj[0] - uv_px)), float(z[0])
 
+    def reprojections_px(
+        self, world_T_body: np.ndarray, p_world: np.ndarray, uv_px: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`reprojection_px` of N world points (N, 3) against their pixels (N, 2) at once: (N,) errors px and (N,)
+        depths m (equal to the one-point version up to rounding in the last bits)."""
+        Twc = world_T_body @ self.body_T_cam
+        p_cam = (np.asarray(p_world, float).reshape(-1, 3) - Twc[:3, 3]) @ Twc[:3, :3]
+        z = p_cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            du = self.K[0, 0] * p_cam[:, 0] / z + self.K[0, 2] - uv_px[:, 0]
+            dv = self.K[1, 1] * p_cam[:, 1] / z + self.K[1, 2] - uv_px[:, 1]
+            return np.sqrt(du * du + dv * dv), z
+
     def forget_before(self, k: int) -> None:
         """Drop views older than keyframe k and un-admit every landmark (used after a solver rebuild)."""
         for tr in self.tracks.values():

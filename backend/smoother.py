@@ -11,6 +11,7 @@ import math
 from typing import Any
 
 import gtsam
+import numpy as np
 
 from vio.config import SmootherConfig
 
@@ -56,6 +57,7 @@ class Smoother:
     def __init__(self, cfg: SmootherConfig) -> None:
         self.cfg = cfg
         self.kind = cfg.kind
+        self._getter_of: dict[int, str] = {}  # key -> the name of its estimate getter
         if self.kind not in ("isam2", "fixed_lag"):
             raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
         self.reset()
@@ -123,8 +125,22 @@ class Smoother:
         out = gtsam.Values()
         try:
             for key in keys:
-                getter = _GETTERS.get(chr(gtsam.Symbol(key).chr()), "calculateEstimatePoint3")
+                getter = self._getter_of.get(key)
+                if getter is None:  # a gtsam.Symbol per key and keyframe cost more than the estimate itself
+                    getter = _GETTERS.get(chr(gtsam.Symbol(key).chr()), "calculateEstimatePoint3")
+                    self._getter_of[key] = getter
                 out.insert(key, getattr(self._isam, getter)(key))
+        except RuntimeError as exc:
+            raise SolverFailure(first_line(exc)) from exc
+        return out
+
+    def estimate_points(self, keys: list[int]) -> np.ndarray:
+        """(N, 3) current estimates of point keys (landmarks), m, world frame."""
+        out = np.empty((len(keys), 3))
+        try:
+            get = self._isam.calculateEstimatePoint3
+            for i, key in enumerate(keys):
+                out[i] = get(key)
         except RuntimeError as exc:
             raise SolverFailure(first_line(exc)) from exc
         return out
