@@ -103,26 +103,29 @@ class CameraCalib:
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         target = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
         k1, k2, p1, p2 = (float(c) for c in self.dist)
-        xy = target.copy()
+        # the products are grouped as `a * b * c` groups them, so the result is the same to the last bit whatever
+        # is reused between the terms (the Jacobian is symmetric: j12 == j21)
+        p1_2, p2_2, p1_6, p2_6, k1_2, k2_4 = 2.0 * p1, 2.0 * p2, 6.0 * p1, 6.0 * p2, 2.0 * k1, 4.0 * k2
+        tx, ty = target[:, 0].copy(), target[:, 1].copy()
+        x, y = tx.copy(), ty.copy()
         for _ in range(iterations):
-            x, y = xy[:, 0], xy[:, 1]
-            r2 = x * x + y * y
+            xx, yy, xy = x * x, y * y, x * y
+            r2 = xx + yy
             radial = 1.0 + k1 * r2 + k2 * r2 * r2
-            drad = 2.0 * k1 + 4.0 * k2 * r2  # d(radial)/d(r2) * 2
-            fx_ = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - target[:, 0]
-            fy_ = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - target[:, 1]
-            j11 = radial + x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-            j21 = x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = radial + y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j11 * j22 - j12 * j21
+            drad = k1_2 + k2_4 * r2  # d(radial)/d(r2) * 2
+            fx_ = x * radial + p1_2 * x * y + p2 * (r2 + 2.0 * x * x) - tx
+            fy_ = y * radial + p1 * (r2 + 2.0 * y * y) + p2_2 * x * y - ty
+            j11 = radial + xx * drad + p1_2 * y + p2_6 * x
+            j12 = xy * drad + p1_2 * x + p2_2 * y
+            j22 = radial + yy * drad + p1_6 * y + p2_2 * x
+            det = j11 * j22 - j12 * j12
             dx = (j22 * fx_ - j12 * fy_) / det
-            dy = (-j21 * fx_ + j11 * fy_) / det
-            xy[:, 0] -= dx
-            xy[:, 1] -= dy
+            dy = (-j12 * fx_ + j11 * fy_) / det
+            x -= dx
+            y -= dy
             if max(np.abs(dx).max(initial=0.0), np.abs(dy).max(initial=0.0)) < 1e-14:
                 break
-        return xy
+        return np.column_stack([x, y])
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,8 @@
 A thread does not overlap the tracker with the estimator (gtsam's wrapper keeps the GIL through an iSAM2 update:
 docs/BENCHMARKS.md, "The two cores, measured"); a second interpreter does. The worker opens the same capture, decodes
 and tracks every frame with the same code as the single-process path (`vio.tracking.tracked_frames`), runs its own
-copy of the keyframe selector (it depends on the tracks only) and samples each new track's colour, and sends per
+copy of the keyframe selector (it depends on the tracks only) and samples each new track's colour (a thread of its
+own decodes the next `PREFETCH_FRAMES` images meanwhile, on whatever core the estimator leaves idle), and sends per
 frame: the tracks, their ages, the new colours and the image only where the estimator needs it (keyframes, for the
 re-identification's descriptors; every frame when a viewer is attached). The pipe is enlarged so that it holds a
 few keyframes while the estimator solves. Results are the single-process path's, frame for frame.
@@ -29,6 +30,7 @@ from vio.records import Frame
 
 _F_SETPIPE_SZ = 1031  # Linux fcntl: set a pipe's capacity
 _PIPE_BYTES = 1 << 20  # 1 MiB: about three 640x480 keyframe images ahead (the default 64 KiB holds none)
+PREFETCH_FRAMES = 4  # images decoded ahead in a thread of the worker (vio.tracking.images)
 
 
 def tracked_in_worker(
@@ -85,7 +87,7 @@ def main() -> int:
     try:
         cap = open_capture(path, calib, **options)
         selector = KeyframeSelector(cfg.keyframes)
-        for kind, payload in tracked_frames(cap, cfg, stop):
+        for kind, payload in tracked_frames(cap, cfg, stop, PREFETCH_FRAMES):
             if kind == "skip":
                 send(stdout, ("skip", *payload))
                 continue

@@ -4,6 +4,8 @@ velocities, and sample each new track's colour."""
 
 from __future__ import annotations
 
+import queue
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -26,24 +28,74 @@ def image_of(cap: Capture, i: int) -> np.ndarray:
     return image
 
 
-def tracked_frames(cap: Capture, cfg: Config, stop: int) -> Iterator[tuple[str, Any]]:
+def tracked_frames(cap: Capture, cfg: Config, stop: int, prefetch: int = 0) -> Iterator[tuple[str, Any]]:
     """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames, the new tracks'
     colours (ids, RGB))) per frame, or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to decode
-    (or has the wrong size)."""
+    (or has the wrong size). With `prefetch` > 0 the images are decoded up to that many frames ahead in a thread
+    (`images`); only for a capture that nothing else reads meanwhile (the tracker's own process)."""
     from frontend.tracker import FeatureTracker
 
     velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
     tracker = FeatureTracker(cap.camera, cfg.tracker)
     colours = TrackColours()
-    for i in range(stop):
+    for i, image in enumerate(images(cap, stop, prefetch)):
         t_ns = int(cap.frame_t_ns[i])
-        try:
-            frame = Frame(t_ns, 0, image_of(cap, i))
-        except CaptureError as exc:
-            yield "skip", (t_ns, i, str(exc))
+        if isinstance(image, CaptureError):
+            yield "skip", (t_ns, i, str(image))
             continue
+        frame = Frame(t_ns, 0, image)
         tracks = velocity.add(tracker.track(frame))
         yield "frame", (frame, tracks, tracker.ages(), colours.see(frame, tracks))
+
+
+def images(cap: Capture, stop: int, prefetch: int = 0) -> Iterator[np.ndarray | CaptureError]:
+    """Frame images 0..stop-1 in order (`image_of`), the CaptureError in place of one that cannot be used. With
+    `prefetch` > 0 a thread decodes them up to `prefetch` frames ahead: OpenCV's decoders release the GIL, so the
+    decoding uses a core the tracker leaves idle (the estimator's, while it waits for tracks). Any other error is
+    raised here, at its frame."""
+    if prefetch <= 0:
+        for i in range(stop):
+            try:
+                yield image_of(cap, i)
+            except CaptureError as exc:
+                yield exc
+        return
+    ready: queue.Queue[Any] = queue.Queue(maxsize=prefetch)
+    stopped = threading.Event()
+
+    def decode() -> None:
+        for i in range(stop):
+            try:
+                item: Any = image_of(cap, i)
+            except CaptureError as exc:
+                item = exc
+            except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
+                item = _Failed(exc)
+            while not stopped.is_set():
+                try:
+                    ready.put(item, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+            if stopped.is_set() or isinstance(item, _Failed):
+                return
+
+    threading.Thread(target=decode, name="vio-decode", daemon=True).start()
+    try:
+        for _ in range(stop):
+            item = ready.get()
+            if isinstance(item, _Failed):
+                raise item.error
+            yield item
+    finally:
+        stopped.set()
+
+
+class _Failed:
+    """An unexpected error in the decoding thread, carried to the consumer."""
+
+    def __init__(self, error: BaseException) -> None:
+        self.error = error
 
 
 class TrackColours:
