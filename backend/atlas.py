@@ -26,6 +26,7 @@ MAX_SNAPSHOTS = 6
 SNAPSHOT_SPACING_DEG = 10.0
 MAX_DEPTH_RATIO = 1.25  # one-level descriptors: compare views within this range of distances only
 _MIN_DEPTH_M = 0.05
+_EXACT_MARGIN = 1e-9  # m and cosine: `remember`'s all-at-once pass skips only views this far from a threshold
 
 
 def gravity_angles_deg(world_T_cam: np.ndarray, uv_px: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -97,10 +98,9 @@ class LandmarkAtlas:
         """Keep the descriptors of landmarks seen from world_T_body when the viewpoint is a new one."""
         c = (world_T_body @ self.body_T_cam)[:3, 3]
         cos_new = np.cos(np.radians(SNAPSHOT_SPACING_DEG))
-        for j, d, good in zip(np.asarray(ids).tolist(), desc, ok, strict=True):
-            row = self.rows.get(int(j))
-            if row is None or not good:
-                continue
+        rows = [self.rows.get(int(j), -1) if good else -1 for j, good in zip(np.asarray(ids).tolist(), ok, strict=True)]
+        for i in self._maybe_new(c, rows, cos_new).tolist():
+            row, d = rows[i], desc[i]
             ray = c - self._pos[row]
             depth = float(np.linalg.norm(ray))
             if depth < _MIN_DEPTH_M:
@@ -112,6 +112,28 @@ class LandmarkAtlas:
             slot = self._new_slot(row)
             self._snap_row[slot], self._snap_desc[slot] = row, d
             self._snap_dir[slot], self._snap_depth[slot] = ray, depth
+
+    def _maybe_new(self, c: np.ndarray, rows: list[int], cos_new: float) -> np.ndarray:
+        """Indices into `rows` (atlas rows, -1 for none) whose view from camera centre c may need a new snapshot:
+        all at once, leaving out only the rows that are surely too close or surely seen from a kept viewpoint (by
+        `_EXACT_MARGIN`: `remember` decides the others one at a time, exactly as it always did)."""
+        idx = np.flatnonzero(np.asarray(rows, np.int64) >= 0)
+        if not idx.size:
+            return idx
+        r = np.asarray(rows, np.int64)[idx]
+        rays = c - self._pos[r]
+        depth = np.sqrt(np.einsum("ij,ij->i", rays, rays))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rays /= depth[:, None]
+        slots = [self._slots[row] for row in r.tolist()]
+        owner = np.repeat(np.arange(idx.size), [len(s) for s in slots])
+        flat = np.fromiter((s for row_slots in slots for s in row_slots), np.int64, count=owner.size)
+        best = np.full(idx.size, -np.inf)
+        np.maximum.at(best, owner, np.einsum("ij,ij->i", self._snap_dir[flat], rays[owner]))
+        surely_old = (depth < _MIN_DEPTH_M - _EXACT_MARGIN) | (
+            (depth > _MIN_DEPTH_M + _EXACT_MARGIN) & (best > cos_new + _EXACT_MARGIN)
+        )
+        return idx[~surely_old]
 
     def _candidates(
         self, world_T_body: np.ndarray, exclude: set[int], alive: Callable[[int], bool]
