@@ -380,12 +380,14 @@ class VioEstimator:
         zv = self.cfg.zero_velocity
         if zv.max_flow_px <= 0:
             return False
-        moved = [
-            np.linalg.norm(tr.views[k] - tr.views[prev])
-            for tr in (self.book.tracks[j] for j in ids.tolist())
-            if prev in tr.views
-        ]
-        if len(moved) < 5 or float(np.median(moved)) > zv.max_flow_px:
+        shared = [tr.views for tr in (self.book.tracks[j] for j in ids.tolist()) if prev in tr.views]
+        if len(shared) < 5:
+            return False
+        d = np.array([v[k] for v in shared]) - np.array([v[prev] for v in shared])
+        flow = float(np.median(np.sqrt(np.einsum("ij,ij->i", d, d))))  # all at once; near the threshold, as before:
+        if abs(flow - zv.max_flow_px) <= _EXACT_MARGIN:
+            flow = float(np.median([np.linalg.norm(v[k] - v[prev]) for v in shared]))
+        if flow > zv.max_flow_px:
             return False
         t1 = self.state.t_ns[k]
         return static_start(self.imu, t1 - int(zv.window_s * 1e9), t1, zv.max_gyro_std, zv.max_acc_std) is not None

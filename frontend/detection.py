@@ -14,6 +14,8 @@ sub-pixel positions (`refine_subpixel`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -56,10 +58,36 @@ def _rank_within_cell(cells: np.ndarray, ncells: int) -> np.ndarray:
     return rank
 
 
+@dataclass(frozen=True)
+class CornerResponse:
+    """What detection needs from an image alone, before the tracks are known (so it can be computed ahead, in
+    another thread: `vio.tracking.images`)."""
+
+    eig: np.ndarray  # (H, W) float32 Shi-Tomasi (minimum eigenvalue) response
+    peak: float  # its maximum
+    strong: np.ndarray | None  # (H, W) bool: 3x3 local maxima above quality_level * peak (None: no corner at all)
+
+
+def corner_response(gray: np.ndarray, cfg: TrackerConfig) -> CornerResponse:
+    """The Shi-Tomasi response of a grayscale image and its strong local maxima (the candidates before the
+    occupancy mask)."""
+    eig = cv2.cornerMinEigenVal(gray, blockSize=3, ksize=3)
+    peak = float(eig.max())
+    if not np.isfinite(peak) or peak <= 1e-7:
+        return CornerResponse(eig, peak, None)
+    local_max = eig >= cv2.dilate(eig, np.ones((3, 3), np.uint8))
+    return CornerResponse(eig, peak, local_max & (eig > cfg.quality_level * peak))
+
+
 def detect_corners(
-    gray: np.ndarray, existing_uv: np.ndarray, num_wanted: int, cfg: TrackerConfig
+    gray: np.ndarray,
+    existing_uv: np.ndarray,
+    num_wanted: int,
+    cfg: TrackerConfig,
+    response: CornerResponse | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Detect up to `num_wanted` new corners away from `existing_uv` (N, 2) px.
+    """Detect up to `num_wanted` new corners away from `existing_uv` (N, 2) px (`response`: `corner_response` of
+    `gray` when it was computed ahead).
 
     Returns ((M, 2) float64 px sub-pixel positions, (M,) float64 Shi-Tomasi responses), strongest first within
     each pass. A featureless image gives M = 0.
@@ -68,13 +96,12 @@ def detect_corners(
     if num_wanted <= 0 or gray.size == 0:
         return empty
     shape = gray.shape[:2]
-    eig = cv2.cornerMinEigenVal(gray, blockSize=3, ksize=3)
-    peak = float(eig.max())
-    if not np.isfinite(peak) or peak <= 1e-7:
+    response = corner_response(gray, cfg) if response is None else response
+    if response.strong is None:
         return empty
+    eig = response.eig
     mask = occupancy_mask(shape, existing_uv, cfg.min_distance_px, cfg.border_px)
-    local_max = eig >= cv2.dilate(eig, np.ones((3, 3), np.uint8))
-    cand = local_max & (eig > cfg.quality_level * peak) & (mask > 0)
+    cand = response.strong & (mask > 0)
     pts = cv2.findNonZero(cand.view(np.uint8))  # much faster than np.nonzero on a full frame
     if pts is None:
         return empty

@@ -27,7 +27,7 @@ from collections import deque
 import cv2
 import numpy as np
 
-from frontend.detection import detect_corners
+from frontend.detection import CornerResponse, detect_corners
 from vio.config import TrackerConfig
 from vio.errors import CalibrationError, CaptureError, ConfigError
 from vio.records import CameraCalib, FeatureTracks, Frame
@@ -110,8 +110,9 @@ class FeatureTracker:
         self.timings_s[section] += t1 - t0
         return t1
 
-    def track(self, frame: Frame) -> FeatureTracks:
-        """Track the previous frame's features into `frame`, drop outliers, top up with new corners."""
+    def track(self, frame: Frame, response: CornerResponse | None = None) -> FeatureTracks:
+        """Track the previous frame's features into `frame`, drop outliers, top up with new corners (`response`:
+        `frontend.detection.corner_response` of the frame's image, when it was computed ahead)."""
         gray = to_gray(frame.image)
         h, w = gray.shape
         if (w, h) != (self.camera.width, self.camera.height):
@@ -126,7 +127,7 @@ class FeatureTracker:
         t0 = time.perf_counter()
         want = self.cfg.max_features - self._ids.size
         if want > 0:
-            new_uv, _ = detect_corners(gray, self._uv, want, self.cfg)
+            new_uv, _ = detect_corners(gray, self._uv, want, self.cfg, response)
             n = new_uv.shape[0]
             self._uv = np.vstack([self._uv, new_uv])
             self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + n, dtype=np.int64)])

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -31,32 +31,51 @@ def image_of(cap: Capture, i: int) -> np.ndarray:
 def tracked_frames(cap: Capture, cfg: Config, stop: int, prefetch: int = 0) -> Iterator[tuple[str, Any]]:
     """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames, the new tracks'
     colours (ids, RGB))) per frame, or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to decode
-    (or has the wrong size). With `prefetch` > 0 the images are decoded up to that many frames ahead in a thread
-    (`images`); only for a capture that nothing else reads meanwhile (the tracker's own process)."""
-    from frontend.tracker import FeatureTracker
+    (or has the wrong size). With `prefetch` > 0 a thread decodes the images up to that many frames ahead and
+    computes what corner detection needs from the image alone (`frontend.detection.corner_response`), the same
+    numbers the tracker would compute (`ahead`); only for a capture that nothing else reads meanwhile (the
+    tracker's own process)."""
+    from frontend.detection import corner_response
+    from frontend.tracker import FeatureTracker, to_gray
 
     velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
     tracker = FeatureTracker(cap.camera, cfg.tracker)
     colours = TrackColours()
-    for i, image in enumerate(images(cap, stop, prefetch)):
+
+    def load(i: int) -> tuple[np.ndarray, Any]:  # what does not depend on the tracks, ahead in the thread
+        image = image_of(cap, i)
+        try:
+            return image, corner_response(to_gray(image), cfg.tracker)
+        except Exception:  # noqa: BLE001 - the tracker meets the same problem at its frame and reports it there
+            return image, None
+
+    items = images(cap, stop) if prefetch <= 0 else ahead(load, stop, prefetch)
+    for i, item in enumerate(items):
         t_ns = int(cap.frame_t_ns[i])
-        if isinstance(image, CaptureError):
-            yield "skip", (t_ns, i, str(image))
+        if isinstance(item, CaptureError):
+            yield "skip", (t_ns, i, str(item))
             continue
+        image, response = (item, None) if prefetch <= 0 else item
         frame = Frame(t_ns, 0, image)
-        tracks = velocity.add(tracker.track(frame))
+        tracks = velocity.add(tracker.track(frame, response))
         yield "frame", (frame, tracks, tracker.ages(), colours.see(frame, tracks))
 
 
 def images(cap: Capture, stop: int, prefetch: int = 0) -> Iterator[np.ndarray | CaptureError]:
-    """Frame images 0..stop-1 in order (`image_of`), the CaptureError in place of one that cannot be used. With
-    `prefetch` > 0 a thread decodes them up to `prefetch` frames ahead: OpenCV's decoders release the GIL, so the
-    decoding uses a core the tracker leaves idle (the estimator's, while it waits for tracks). Any other error is
-    raised here, at its frame."""
+    """Frame images 0..stop-1 in order (`image_of`), the CaptureError in place of one that cannot be used; with
+    `prefetch` > 0 decoded ahead in a thread (`ahead`)."""
+    return ahead(lambda i: image_of(cap, i), stop, prefetch)
+
+
+def ahead(load: Callable[[int], Any], stop: int, prefetch: int = 0) -> Iterator[Any]:
+    """`load(i)` for i in 0..stop-1, in order, the CaptureError in place of an item that raised one. With `prefetch`
+    > 0 a thread computes them up to `prefetch` items ahead: OpenCV releases the GIL in its decoders and filters, so
+    that work uses a core the tracker leaves idle (the estimator's, while it waits for tracks). Any other error is
+    raised here, at its item."""
     if prefetch <= 0:
         for i in range(stop):
             try:
-                yield image_of(cap, i)
+                yield load(i)
             except CaptureError as exc:
                 yield exc
         return
@@ -66,7 +85,7 @@ def images(cap: Capture, stop: int, prefetch: int = 0) -> Iterator[np.ndarray | 
     def decode() -> None:
         for i in range(stop):
             try:
-                item: Any = image_of(cap, i)
+                item: Any = load(i)
             except CaptureError as exc:
                 item = exc
             except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
@@ -80,7 +99,7 @@ def images(cap: Capture, stop: int, prefetch: int = 0) -> Iterator[np.ndarray | 
             if stopped.is_set() or isinstance(item, _Failed):
                 return
 
-    threading.Thread(target=decode, name="vio-decode", daemon=True).start()
+    threading.Thread(target=decode, name="vio-ahead", daemon=True).start()
     try:
         for _ in range(stop):
             item = ready.get()
@@ -92,7 +111,7 @@ def images(cap: Capture, stop: int, prefetch: int = 0) -> Iterator[np.ndarray | 
 
 
 class _Failed:
-    """An unexpected error in the decoding thread, carried to the consumer."""
+    """An unexpected error in the thread of `ahead`, carried to the consumer."""
 
     def __init__(self, error: BaseException) -> None:
         self.error = error

@@ -61,3 +61,23 @@ def test_stopping_early_stops_the_thread():
     it.close()
     time.sleep(0.5)
     assert len(calls) <= 5  # the one taken, the two queued, one waiting to be queued, at most one more
+
+
+def test_tracking_ahead_gives_the_same_tracks(sim_capture):
+    from vio.config import load_config
+    from vio.readers import open_capture
+    from vio.tracking import tracked_frames
+
+    cap = open_capture(sim_capture("orbit", 2.0))
+    cfg = load_config(None, [])
+    plain = list(tracked_frames(cap, cfg, 30))
+    ahead = list(tracked_frames(cap, cfg, 30, prefetch=3))
+    assert len(plain) == len(ahead) == 30
+    for (kind_a, (frame_a, tr_a, ages_a, col_a)), (kind_b, (frame_b, tr_b, ages_b, col_b)) in zip(
+        plain, ahead, strict=True
+    ):
+        assert kind_a == kind_b == "frame"
+        assert np.array_equal(frame_a.image, frame_b.image)
+        assert np.array_equal(tr_a.ids, tr_b.ids) and np.array_equal(tr_a.uv, tr_b.uv)
+        assert np.array_equal(tr_a.uv_per_s, tr_b.uv_per_s) and np.array_equal(ages_a, ages_b)
+        assert np.array_equal(col_a[0], col_b[0]) and np.array_equal(col_a[1], col_b[1])
