@@ -27,6 +27,7 @@ from vio.geometry import inv_T
 from vio.model.dense_common import METHODS, Crop, DenseConfig, gray, roi_bbox, roi_window
 from vio.model.dense_sgbm import sgbm_depth
 from vio.model.dense_sweep import sweep_depth
+from vio.model.parallel import ordered_map
 from vio.model.records import DepthMap, Roi, View
 
 log = logging.getLogger(__name__)
@@ -113,13 +114,12 @@ def iter_depth_maps(
         v = views[j]
         return Crop(gray(v.image[y0:y1, x0:x1]), np.asarray(v.K, float), np.asarray(v.world_T_cam, float), x0, y0)
 
-    for i, view in enumerate(views):
-        if references is not None and i not in references:
-            continue
+    def one(i: int) -> DepthMap | None:
+        view = views[i]
         window = None if boxes[i] is None else roi_window(crop(i), roi, config)
         if window is None or not neighbours[i]:
             log.info("view %s: %s, no depth map", view.name, "ROI not seen" if window is None else "no neighbours")
-            continue
+            return None
         start = time.perf_counter()
         depth, score = match(window, [crop(j) for j in neighbours[i]], config)
         x0, y0 = window.crop.x0, window.crop.y0
@@ -138,7 +138,12 @@ def iter_depth_maps(
             int(np.isfinite(depth).sum()),
             time.perf_counter() - start,
         )
-        yield DepthMap(i, depth_m, confidence)
+        return DepthMap(i, depth_m, confidence)
+
+    todo = [i for i in range(len(views)) if references is None or i in references]
+    for depth_map in ordered_map(one, todo):  # on every core, in order (vio.model.parallel)
+        if depth_map is not None:
+            yield depth_map
 
 
 def depth_maps(

@@ -23,6 +23,7 @@ from scipy.sparse.csgraph import connected_components
 
 from vio.geometry import inv_T, skew
 from vio.model.dense_common import roi_bbox
+from vio.model.parallel import ordered_map
 from vio.model.records import Roi, View
 
 log = logging.getLogger(__name__)
@@ -84,6 +85,11 @@ def detect(view: View, roi: Roi | None, config: MatchConfig) -> Features:
         return Features(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 128), np.float32))
     uv = np.array([k.pt for k in keypoints], float).reshape(-1, 2) + [x0, y0]
     return Features(uv, np.array([k.size for k in keypoints], float), descriptors.astype(np.float32))
+
+
+def detect_all(views: list[View], roi: Roi | None, config: MatchConfig) -> list[Features]:
+    """`detect` on every view, on every core (vio.model.parallel; each view's keypoints are the serial call's)."""
+    return list(ordered_map(lambda v: detect(v, roi, config), views))
 
 
 def select_pairs(views: list[View], roi: Roi | None, config: MatchConfig) -> list[tuple[int, int]]:
@@ -245,7 +251,7 @@ def triangulate(views: list[View], features: list[Features], tracks: list[np.nda
 def find_tracks(views: list[View], roi: Roi | None = None, config: MatchConfig | None = None) -> Tracks:
     """Detect, match, verify, join and triangulate: the tracks the bundle adjustment refines."""
     config = config or MatchConfig()
-    features = [detect(v, roi, config) for v in views]
+    features = detect_all(views, roi, config)
     pairs = select_pairs(views, roi, config)
     matches = match_pairs(views, features, pairs, config)
     found = triangulate(views, features, build_tracks(features, matches), config)

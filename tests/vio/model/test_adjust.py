@@ -138,3 +138,18 @@ def test_similarity_recovers_a_known_transform():
     R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
     s, R_fit, t = similarity(src, 1.5 * src @ R.T + [1.0, 2.0, 3.0])
     assert abs(s - 1.5) < 1e-12 and np.allclose(R_fit, R) and np.allclose(t, [1.0, 2.0, 3.0])
+
+
+def test_features_on_threads_are_the_serial_ones(orbit, monkeypatch):
+    """SIFT runs on every core (vio.model.parallel); each view's keypoints must be the serial call's."""
+    from vio.model.matches import MatchConfig, detect_all
+
+    truth, images, K = orbit
+    views = [View(f"v{i}", im, K, T) for i, (im, T) in enumerate(zip(images[:5], truth[:5], strict=True))]
+    monkeypatch.setenv("VIO_MODEL_THREADS", "1")
+    serial = detect_all(views, None, MatchConfig())
+    monkeypatch.setenv("VIO_MODEL_THREADS", "3")
+    threaded = detect_all(views, None, MatchConfig())
+    assert all(len(f.uv) > 500 for f in serial)
+    for a, b in zip(serial, threaded, strict=True):
+        assert np.array_equal(a.uv, b.uv) and np.array_equal(a.descriptors, b.descriptors)

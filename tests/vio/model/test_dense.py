@@ -129,3 +129,17 @@ def test_bad_method_is_a_config_error(scene):
     with pytest.raises(ConfigError, match="dense method must be one of sweep, sgbm, got 'patchmatch'"):
         depth_maps(views, roi, DenseConfig(method="patchmatch"))
     assert depth_maps([], roi) == []
+
+
+@pytest.mark.parametrize("method", ["sweep", "sgbm"])
+def test_depth_maps_on_threads_are_the_serial_ones(scene, method, monkeypatch):
+    """vio.model.parallel runs the views on every core; the maps must be the serial loop's, bit for bit, in order."""
+    views, _, roi = scene
+    refs = [0, REF, 4]
+    monkeypatch.setenv("VIO_MODEL_THREADS", "1")
+    serial = depth_maps(views, roi, DenseConfig(method=method), references=refs)
+    monkeypatch.setenv("VIO_MODEL_THREADS", "3")
+    threaded = depth_maps(views, roi, DenseConfig(method=method), references=refs)
+    assert [m.view for m in threaded] == [m.view for m in serial] and len(serial) >= 2
+    for a, b in zip(serial, threaded, strict=True):
+        assert np.array_equal(a.depth_m, b.depth_m, equal_nan=True) and np.array_equal(a.confidence, b.confidence)
