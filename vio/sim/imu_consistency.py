@@ -16,6 +16,14 @@ IMU - (that motion + the ground truth's biases) is then compared with the noise 
 A real IMU that disagrees with the ground truth by far more than its declared noise either has more noise than
 declared (vibration, bias instability) or the ground truth is less accurate than the IMU: on a semi-real capture
 either makes the IMU and the rendered vision disagree.
+
+- the regression slopes between the two accelerations (world frame, gravity and the ground truth's biases removed,
+  means over `SLOPE_BLOCK_S` blocks): `<a_gt, a_imu> / <a_gt, a_gt>` and `<a_gt, a_imu> / <a_imu, a_imu>`. A
+  semi-real capture's images follow the ground truth, so the estimator fits the IMU to the ground truth's motion:
+  acceleration in the ground truth that the IMU did not measure (or an IMU that reads dynamic accelerations too
+  small) makes the first slope less than 1 and the metric scale comes out that much too small (errors in the
+  regressor attenuate the fit). Both slopes below 1 mean that both accelerations hold error; a pure scale factor k
+  of the IMU would give k and 1/k.
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ from vio.records import GRAVITY_WORLD
 
 WINDOWS_S = (0.15, 0.5, 1.0)
 TAUS_S = (0.1, 1.0, 10.0)
+SLOPE_BLOCK_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -43,6 +52,7 @@ class ImuConsistency:
     acc_adev_ratio: dict[float, float]
     prediction: dict[float, tuple[float, float, float, float]]  # window s -> (position rms m, rotation rms deg) for
     # the capture's IMU, then for a simulated IMU with the declared white noise
+    acc_slope: tuple[float, float] = (float("nan"), float("nan"))  # <gt, imu>/<gt, gt>, <gt, imu>/<imu, imu>
 
 
 def _truth(t_ns: np.ndarray, q_wxyz: np.ndarray, v_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -95,7 +105,20 @@ def imu_consistency(capture: str | Path, skip_s: float = 0.0, seed: int = 0) -> 
         sim = np.array([_dead_reckon(t_s, R, p, v, sim_gyro, sim_acc, i, n) for i in starts])
         rms = lambda e: np.sqrt(np.mean(e**2, axis=0))  # noqa: E731
         prediction[window] = (*rms(real), *rms(sim))
-    return ImuConsistency(ratios[0], ratios[1], prediction)
+    return ImuConsistency(ratios[0], ratios[1], prediction, _acc_slopes(t_s, R, acc, v, rate))
+
+
+def _acc_slopes(t_s, R, acc, v, rate: float) -> tuple[float, float]:
+    """The two regression slopes between the IMU's and the ground truth's world accelerations (module docstring)."""
+    a_imu = np.einsum("nij,nj->ni", R, acc) + GRAVITY_WORLD
+    n = max(int(round(SLOPE_BLOCK_S * rate)), 1)
+    i0 = np.arange(0, len(t_s) - n, n)
+    if len(i0) < 2:
+        return float("nan"), float("nan")
+    a_gt = (v[i0 + n] - v[i0]) / (t_s[i0 + n] - t_s[i0])[:, None]
+    a_im = np.add.reduceat(a_imu[: i0[-1] + n], i0, axis=0)[: len(i0)] / n
+    cross = float(np.sum(a_gt * a_im))
+    return cross / float(np.sum(a_gt**2)), cross / float(np.sum(a_im**2))
 
 
 def _dead_reckon(t_s, R, p, v, gyro, acc, i0: int, n: int) -> tuple[float, float]:
@@ -118,4 +141,9 @@ def consistency_text(c: ImuConsistency) -> str:
     lines.append("dead reckoning from the ground truth (rms): this IMU | an IMU with the declared white noise")
     for w, (pr, rr, ps, rs) in c.prediction.items():
         lines.append(f"  {w:g} s: {pr * 1e3:.2f} mm, {rr:.3f} deg | {ps * 1e3:.2f} mm, {rs:.3f} deg")
+    fwd, rev = c.acc_slope
+    lines.append(
+        f"acceleration slopes over {SLOPE_BLOCK_S:g} s blocks: IMU on ground truth {fwd:.4f}, ground truth on IMU "
+        f"{rev:.4f} (a semi-real run's scale reads about {100 * (fwd - 1):+.2f} % from the first)"
+    )
     return "\n".join(lines)
