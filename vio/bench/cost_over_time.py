@@ -1,13 +1,14 @@
 """How the cost of `vio run` grows with the capture: per-keyframe latency and resident memory per minute.
 
 `python -m vio.bench.cost_over_time CAPTURE --out DIR [--preset NAME] [--set key=value ...]` runs the estimator on
-one capture in this process (as `vio run` does) while a thread samples the process's resident memory twice a
-second, tagged with the capture time of the frame being read. Each keyframe's update time comes from the run's
-own record (`keyframe_ms`, wall clock, and `step_cpu_ms`, this process's CPU time; ms), placed at its keyframe's
-capture time. Written to DIR: the run's files in `run/`, `cost.json` (per minute of capture: keyframes, latency
-p50/p95/p99/max ms, wall and CPU, peak and last resident memory MiB; the whole run's wall time, real-time
-factor, peak memory, the load average, ATE against the ground truth when the capture has one) and `cost.png`
-(latency and memory over the capture).
+one capture in this process (as `vio run` does) while a thread samples the process's resident memory twice a second,
+tagged with the capture time of the latest frame the estimator took (from the run's health monitor, so also when the
+tracker runs in a process of its own, `run.tracker_process`; that process's memory is sampled beside, as
+`children_memory`). Each keyframe's update time comes from the run's own record (`keyframe_ms`, wall clock, and
+`step_cpu_ms`, this process's CPU time; ms), placed at its keyframe's capture time. Written to DIR: the run's files
+in `run/`, `cost.json` (per minute of capture: keyframes, latency p50/p95/p99/max ms, wall and CPU, peak and last
+resident memory MiB; the whole run's wall time, real-time factor, peak memory, the load average, ATE against the
+ground truth when the capture has one) and `cost.png` (latency and memory over the capture).
 
 Wall-clock latencies are only comparable between runs made under the same load (the load average at the start and
 the end is recorded beside them); CPU latencies much less depend on what else the machine runs.
@@ -35,10 +36,24 @@ SAMPLE_S = 0.5  # memory sampling period, s
 _PAGE_MIB = os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def rss_mib() -> float:
-    """Resident memory of this process now, MiB."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * _PAGE_MIB
+def rss_mib(pid: int | str = "self") -> float:
+    """Resident memory of this process (or of process `pid`) now, MiB; 0 when it is gone."""
+    try:
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * _PAGE_MIB
+    except (FileNotFoundError, ProcessLookupError, IndexError, ValueError):
+        return 0.0
+
+
+def children_rss_mib() -> float:
+    """Resident memory of this process's child processes now (the tracker's, `run.tracker_process`), MiB."""
+    pids: list[str] = []
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            pids += (task / "children").read_text().split()
+        except OSError:
+            continue
+    return sum(rss_mib(pid) for pid in pids)
 
 
 class MemorySampler:
@@ -48,6 +63,7 @@ class MemorySampler:
         self.t_capture_s = 0.0  # capture time of the frame being read, s from the first frame
         self.after_last = False  # the last frame was read: what follows is the run's end (final solve, files)
         self.samples: list[tuple[float, float, bool]] = []
+        self.children: list[tuple[float, float]] = []  # (capture time s, child processes' resident MiB)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
@@ -63,6 +79,7 @@ class MemorySampler:
     def _loop(self) -> None:
         while not self._stop.wait(SAMPLE_S):
             self.samples.append((self.t_capture_s, rss_mib(), self.after_last))
+            self.children.append((self.t_capture_s, children_rss_mib()))
 
 
 def per_minute(t_s: np.ndarray, values: np.ndarray, minute_s: float = 60.0) -> list[dict[str, float]]:
@@ -81,27 +98,35 @@ def per_minute(t_s: np.ndarray, values: np.ndarray, minute_s: float = 60.0) -> l
 
 def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -> dict[str, Any]:
     """Run the estimator on `capture` into `out/run` and return the cost record (see the module docstring)."""
+    from vio import pipeline
     from vio.config import load_config
-    from vio.pipeline import run_capture
     from vio.readers import open_capture
 
     cfg = load_config(None, overrides + ["run.progress=false"], presets)
     cap = open_capture(capture)
     t0_ns = int(cap.frame_t_ns[0])
-    load_image = cap.load_image
     load_start = os.getloadavg()
     with MemorySampler() as sampler:
         last = cap.num_frames - 1 if cfg.run.max_frames <= 0 else min(cap.num_frames, cfg.run.max_frames) - 1
+        last_t_ns = int(cap.frame_t_ns[last])
+        monitor = pipeline.HealthMonitor
 
-        def tagged(i: int) -> np.ndarray:
-            sampler.t_capture_s = (int(cap.frame_t_ns[i]) - t0_ns) * 1e-9
-            sampler.after_last = i >= last
-            return load_image(i)
+        class TaggingMonitor(monitor):
+            """The run's health monitor, which also tells the sampler the capture time of every frame the
+            estimator takes (the tracker's images are not read in this process when it runs in its own)."""
 
-        cap.load_image = tagged
-        t_wall = time.perf_counter()
-        result = run_capture(cap, out / "run", cfg)
-        wall_s = time.perf_counter() - t_wall
+            def frame(self, t_ns: int, num_tracked: int) -> None:
+                sampler.t_capture_s = (int(t_ns) - t0_ns) * 1e-9
+                sampler.after_last = int(t_ns) >= last_t_ns
+                super().frame(t_ns, num_tracked)
+
+        pipeline.HealthMonitor = TaggingMonitor
+        try:
+            t_wall = time.perf_counter()
+            result = pipeline.run_capture(capture, out / "run", cfg)
+            wall_s = time.perf_counter() - t_wall
+        finally:
+            pipeline.HealthMonitor = monitor
     stats = result.stats
     steps = np.asarray(stats.keyframe_ms[1:], float)  # the first entry is the whole start window
     kf_t = np.sort(np.array([t for _, t, _ in stats.keyframe_projections], np.int64))
@@ -127,6 +152,7 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "cpu_s": result.summary["cpu_time_s"],
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "end_rss_peak_mib": float(end.max()) if end.size else float("nan"),  # from the last frame read to the end
+        "children_rss_peak_mib": max((m for _, m in sampler.children), default=0.0),  # the tracker's process
         "load_average_start": load_start[0],
         "load_average_end": os.getloadavg()[0],
         "keyframes": int(steps.size),
@@ -139,6 +165,7 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "keyframe_cpu_ms": np.round(stats.step_cpu_ms, 2).tolist(),
         "memory": mem.round(2).tolist(),  # (capture time s, resident MiB) while the frames are read
         "end_memory": samples[samples[:, 2] == 1, :2].round(2).tolist(),  # the same after the last frame
+        "children_memory": np.round(sampler.children, 2).tolist(),  # (capture time s, child processes' MiB)
     }
     if cap.ground_truth is not None:
         record["ate_se3_m"], record["scale"] = _ate(cap, out / "run" / "trajectory.tum")
@@ -175,6 +202,9 @@ def plot(record: dict[str, Any], path: Path, label: str) -> None:
     ax2.plot(mem[:, 0], mem[:, 1], label="while frames are read")
     if record.get("end_memory"):
         ax2.plot(*np.asarray(record["end_memory"]).T, "r.", ms=3, label="after the last frame (final solve, files)")
+    children = np.asarray(record.get("children_memory", [])).reshape(-1, 2)
+    if children.size and children[:, 1].max() > 0:
+        ax2.plot(children[:, 0], children[:, 1], label="the tracker's process")
     ax2.legend(loc="upper left")
     ax2.set_ylabel("resident memory, MiB")
     ax2.set_xlabel("capture time, s")
@@ -237,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
     ate = f", ATE {1e3 * record['ate_se3_m']:.2f} mm" if "ate_se3_m" in record else ""
     print(
         f"wall {record['wall_s']:.0f} s ({record['realtime_factor']:.2f}x real time), peak RSS "
-        f"{record['peak_rss_mib']:.0f} MiB (after the last frame {record['end_rss_peak_mib']:.0f}), load "
+        f"{record['peak_rss_mib']:.0f} MiB (after the last frame {record['end_rss_peak_mib']:.0f}; the tracker's "
+        f"process {record['children_rss_peak_mib']:.0f}), load "
         f"{record['load_average_start']:.1f}-{record['load_average_end']:.1f}{ate}"
     )
     return 0
