@@ -18,7 +18,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -37,9 +37,6 @@ from vio.health import HealthMonitor, TooManySkipped
 from vio.records import EstimatorStats, FeatureTracks, Frame, LandmarkMap, StateEstimate
 from vio.sinks import EstimateSink
 from vio.tracking import TrackColours, tracked_frames
-
-if TYPE_CHECKING:
-    import subprocess
 
 log = logging.getLogger(__name__)
 
@@ -91,14 +88,11 @@ class _Progress:
 Tracked = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.ndarray] | None]
 
 
-def _frames_and_tracks(
-    cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor, viewer: bool, worker: subprocess.Popen | None = None
-) -> Iterator[Tracked]:
+def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor, viewer: bool) -> Iterator[Tracked]:
     """Yield (frame or None, tracks, ages, the new tracks' colours or None) for every frame: the capture's own
     tracks, or the tracker's, in a process of its own when `cfg.run.tracker_process` and the capture can be opened
-    again there (`Capture.reopen`, `vio.track_worker`, in `worker` when one was started already: frames without an
-    image then are the non-keyframes, unless a `viewer` needs them all). A frame whose image fails to decode is
-    skipped with a warning and counted by `monitor`."""
+    again there (`Capture.reopen`, `vio.track_worker`: frames without an image then are the non-keyframes, unless a
+    `viewer` needs them all). A frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
     if cap.tracks is not None:
         velocity = TrackVelocity()
         first_seen: dict[int, int] = {}
@@ -109,7 +103,7 @@ def _frames_and_tracks(
     if cfg.run.tracker_process and cap.reopen is not None:
         from vio.track_worker import tracked_in_worker
 
-        items = tracked_in_worker(cap.reopen, cfg, stop, viewer, worker)
+        items = tracked_in_worker(cap.reopen, cfg, stop, viewer)
     else:
         items = tracked_frames(cap, cfg, stop)
     for kind, payload in items:
@@ -175,31 +169,6 @@ def _run(
 ) -> tuple[RunResult, VioError | None]:
     """The run (see run_capture); a failure is returned with the result (run.json written), not raised."""
     t_start, cpu_start = time.perf_counter(), time.process_time()
-    worker = None
-    if cfg.run.tracker_process and not isinstance(capture, Capture):
-        from vio.track_worker import start_worker
-
-        worker = start_worker()  # its interpreter starts while this process opens the capture
-    try:
-        return _run_opened(capture, out, cfg, positions, sinks, calib, worker, t_start, cpu_start)
-    finally:
-        if worker is not None:
-            from vio.track_worker import stop_worker
-
-            stop_worker(worker)
-
-
-def _run_opened(
-    capture: str | os.PathLike[str] | Capture,
-    out: Path,
-    cfg: Config,
-    positions: str | None,
-    sinks: Sequence[EstimateSink],
-    calib: str | None,
-    worker: subprocess.Popen | None,
-    t_start: float,
-    cpu_start: float,
-) -> tuple[RunResult, VioError | None]:
     cap = open_any(capture, calib)
     if cap.camera is None or cap.imu is None or cap.imu_calib is None:
         raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
@@ -225,7 +194,7 @@ def _run_opened(
     n_kf = n_done = 0
     t_first = t_last = None
     try:
-        frames = _frames_and_tracks(cap, cfg, stop, monitor, bool(sinks), worker)
+        frames = _frames_and_tracks(cap, cfg, stop, monitor, bool(sinks))
         for n_done, (frame, tracks, ages, new_colours) in enumerate(frames, start=1):
             t_first = tracks.t_ns if t_first is None else t_first
             t_last = tracks.t_ns

@@ -33,10 +33,12 @@ _PIPE_BYTES = 1 << 20  # 1 MiB: about three 640x480 keyframe images ahead (the d
 PREFETCH_FRAMES = 4  # images decoded ahead in a thread of the worker (vio.tracking.images)
 
 
-def start_worker() -> subprocess.Popen:
-    """Start the worker process; it imports what it needs and waits for `tracked_in_worker`'s request. Started
-    before the estimator's process opens the capture, its start overlaps that work; the caller kills it when it is
-    not used after all."""
+def tracked_in_worker(
+    reopen: tuple[str, str | None, dict[str, Any]], cfg: Any, stop: int, every_image: bool
+) -> Iterator[tuple[str, Any]]:
+    """Start the worker and yield what `vio.tracking.tracked_frames` yields there: ("frame", (frame or None, tracks,
+    ages, new colours)) or ("skip", (t_ns, frame index, reason)). Raises VioError when the
+    worker reports an error or stops; the worker is killed when the caller stops early."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "vio.track_worker"],
         stdin=subprocess.PIPE,
@@ -44,31 +46,10 @@ def start_worker() -> subprocess.Popen:
         preexec_fn=die_with_parent,  # noqa: PLW1509 - prctl only, see vio.children
     )
     try:
-        fcntl.fcntl(proc.stdout.fileno(), _F_SETPIPE_SZ, _PIPE_BYTES)
-    except OSError:  # not Linux, or above /proc/sys/fs/pipe-max-size: the default pipe still works
-        pass
-    return proc
-
-
-def stop_worker(proc: subprocess.Popen | None) -> None:
-    """Kill a worker that is still running (no-op for None or one that has ended)."""
-    if proc is not None and proc.poll() is None:
-        proc.kill()
-        proc.wait()
-
-
-def tracked_in_worker(
-    reopen: tuple[str, str | None, dict[str, Any]],
-    cfg: Any,
-    stop: int,
-    every_image: bool,
-    proc: subprocess.Popen | None = None,
-) -> Iterator[tuple[str, Any]]:
-    """Yield what `vio.tracking.tracked_frames` yields in the worker (`proc` from `start_worker`, or one started
-    now): ("frame", (frame or None, tracks, ages, new colours)) or ("skip", (t_ns, frame index, reason)). Raises
-    VioError when the worker reports an error or stops; the worker is killed when the caller stops early."""
-    proc = start_worker() if proc is None else proc
-    try:
+        try:
+            fcntl.fcntl(proc.stdout.fileno(), _F_SETPIPE_SZ, _PIPE_BYTES)
+        except OSError:  # not Linux, or above /proc/sys/fs/pipe-max-size: the default pipe still works
+            pass
         send(proc.stdin, (reopen, cfg, stop, every_image))
         while True:
             try:
@@ -87,7 +68,9 @@ def tracked_in_worker(
             yield "frame", (frame, tracks, ages, (cids, crgb))
         proc.wait()
     finally:
-        stop_worker(proc)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 def main() -> int:
