@@ -144,15 +144,23 @@ def _verify(va: View, vb: View, xa: np.ndarray, xb: np.ndarray, config: MatchCon
 def match_pairs(
     views: list[View], features: list[Features], pairs: list[tuple[int, int]], config: MatchConfig
 ) -> list[tuple[int, int, np.ndarray]]:
-    """Verified matches (i, j, (K, 2) keypoint indices in i and j) of each pair. One FLANN index per first view."""
-    out = []
-    for i in sorted({p[0] for p in pairs}):
+    """Verified matches (i, j, (K, 2) keypoint indices in i and j) of each pair. One FLANN index per first view,
+    the first views on every core (vio.model.parallel). FLANN's randomised trees draw from OpenCV's random number
+    generator (per thread): it is seeded with the view's index before each index is built, so the matches are the
+    same whatever the thread count and the order the views are taken in."""
+    partners: dict[int, list[int]] = {}
+    for i, j in pairs:
+        partners.setdefault(i, []).append(j)
+
+    def match_from(i: int) -> list[tuple[int, int, np.ndarray]]:
         if len(features[i].uv) < config.min_pair_matches:
-            continue
+            return []
+        cv2.setRNGSeed(i)
         flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
         flann.add([features[i].descriptors])
         flann.train()
-        for j in (p[1] for p in pairs if p[0] == i):
+        found = []
+        for j in partners[i]:
             if len(features[j].uv) < config.min_pair_matches:
                 continue
             knn = flann.knnMatch(features[j].descriptors, k=2)
@@ -168,8 +176,10 @@ def match_pairs(
             idx = idx[np.sort(first)]
             keep = _verify(views[i], views[j], features[i].uv[idx[:, 0]], features[j].uv[idx[:, 1]], config)
             if keep.any():
-                out.append((i, j, idx[keep]))
-    return out
+                found.append((i, j, idx[keep]))
+        return found
+
+    return [m for found in ordered_map(match_from, sorted(partners)) for m in found]
 
 
 def build_tracks(features: list[Features], matches: list[tuple[int, int, np.ndarray]]) -> list[np.ndarray]:

@@ -153,3 +153,21 @@ def test_features_on_threads_are_the_serial_ones(orbit, monkeypatch):
     assert all(len(f.uv) > 500 for f in serial)
     for a, b in zip(serial, threaded, strict=True):
         assert np.array_equal(a.uv, b.uv) and np.array_equal(a.descriptors, b.descriptors)
+
+
+def test_matches_on_threads_are_the_serial_ones(orbit, monkeypatch):
+    """Pairs are matched on every core; FLANN's random trees are seeded per view, so the matches do not depend on
+    the thread count (they did depend on the order the indices were built in before)."""
+    from vio.model.matches import MatchConfig, detect_all, match_pairs, select_pairs
+
+    truth, images, K = orbit
+    views = [View(f"v{i}", im, K, T) for i, (im, T) in enumerate(zip(images[:8], truth[:8], strict=True))]
+    config = MatchConfig()
+    features = detect_all(views, None, config)
+    pairs = select_pairs(views, None, config)
+    monkeypatch.setenv("VIO_MODEL_THREADS", "1")
+    serial = match_pairs(views, features, pairs, config)
+    monkeypatch.setenv("VIO_MODEL_THREADS", "3")
+    threaded = match_pairs(views, features, pairs, config)
+    assert len(serial) >= 5 and [(i, j) for i, j, _ in threaded] == [(i, j) for i, j, _ in serial]
+    assert all(np.array_equal(a[2], b[2]) for a, b in zip(serial, threaded, strict=True))
