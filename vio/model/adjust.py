@@ -48,6 +48,9 @@ class AdjustConfig:
     huber_k: float = 1.345  # Huber threshold, sigmas
     outlier_sigmas: float = 4.0  # after the first solve, observations reprojecting further are dropped
     max_iterations: int = 50  # Levenberg-Marquardt iterations per solve
+    # LM stops when an iteration lowers the error by less than this share: 1e-5 took half the CPU of 1e-7 on the
+    # 120 stills of a 60 s capture (13.7 against 27.3 s) and moved no camera centre by more than 0.004 mm
+    relative_error_tol: float = 1e-5
     matching: MatchConfig = field(default_factory=MatchConfig)
 
 
@@ -206,7 +209,7 @@ def _solve(
         estimate.insert(gtsam.symbol("l", int(j)), initial.atPoint3(gtsam.symbol("l", int(j))))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
-    params.setRelativeErrorTol(1e-7)
+    params.setRelativeErrorTol(config.relative_error_tol)
     params.setAbsoluteErrorTol(1e-9)
     try:
         result = gtsam.LevenbergMarquardtOptimizer(graph, estimate, params).optimize()
