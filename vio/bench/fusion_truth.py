@@ -7,7 +7,7 @@ base. Then the plane sweep (`vio.model.dense`, every k-th still a reference as `
 against the CAD. What it measures is what the stereo and the fusion add to a perfect trajectory (docs/BENCHMARKS.md,
 "The flap along the base").
 
-    python -m vio.bench.fusion_truth CAPTURE [CAPTURE ...] --out DIR [--band-mm 4] [--margin-mm 10]
+    python -m vio.bench.fusion_truth CAPTURE [CAPTURE ...] --out DIR [--band-mm 4] [--margin-mm 10] [--no-visibility]
 """
 
 from __future__ import annotations
@@ -35,10 +35,13 @@ def part_roi(capture: str | Path, margin_m: float) -> Roi:
     return Roi(world_T_part, lo - grow, hi + grow + np.array([0.0, 0.0, margin_m]))
 
 
-def fusion_truth(capture: str | Path, out: str | Path, band_m: float = 4e-3, margin_m: float = 0.01) -> dict:
-    """The report of `vio compare` (dict) for the model of `capture` from its true poses, written under `out`."""
+def fusion_truth(
+    capture: str | Path, out: str | Path, band_m: float = 4e-3, margin_m: float = 0.01, visibility: bool = True
+) -> dict:
+    """The report of `vio compare` (dict) for the model of `capture` from its true poses, written under `out`
+    (`visibility`: the depths other views see through dropped before fusion, as `vio model` does)."""
     from vio.model import dense, fuse, mesh
-    from vio.model.build import MAX_DEPTH_MAPS
+    from vio.model.build import MAX_DEPTH_MAPS, ModelOptions
     from vio.model.report import compare
     from vio.model.views import views_from_run
     from vio.readers import open_capture
@@ -52,6 +55,10 @@ def fusion_truth(capture: str | Path, out: str | Path, band_m: float = 4e-3, mar
     roi = part_roi(capture, margin_m)
     step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))
     maps = dense.depth_maps(views, roi, dense.DenseConfig(), references=range(0, len(views), step))
+    if visibility:
+        from vio.model.visibility import visibility_filter
+
+        visibility_filter(views, maps, fuse.TRUNC_VOXELS * ModelOptions().voxel_m)
     volume = fuse.fuse_depth_maps(views, maps, roi, base_band_m=band_m)
     part = mesh.to_support(mesh.mesh_from_volume(volume, frame="world"), roi.world_T_support)
     out = Path(out)
@@ -67,12 +74,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("captures", nargs="+", help="simulated captures with stills (they carry ground truth)")
     ap.add_argument("--out", required=True, help="output folder (one subfolder per capture)")
     ap.add_argument("--band-mm", type=float, default=4.0, help="the fusion's base band, mm (0: off)")
+    ap.add_argument("--no-visibility", dest="visibility", action="store_false", help="no visibility check")
     ap.add_argument("--margin-mm", type=float, default=10.0, help="the part's box grown by this much, mm")
     args = ap.parse_args(argv)
     print("capture | window mm | std mm | p99 mm | completeness")
     for path in args.captures:
         try:
-            rep = fusion_truth(path, Path(args.out) / Path(path).name, args.band_mm * 1e-3, args.margin_mm * 1e-3)
+            rep = fusion_truth(path, Path(args.out) / Path(path).name, args.band_mm * 1e-3, args.margin_mm * 1e-3,
+                               args.visibility)  # fmt: skip
         except (VioError, ValueError, OSError) as exc:
             print(f"{path}: {exc}")
             return 2

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from vio.atomic import write_json
-from vio.bench.suites import Case, Method
+from vio.bench.suites import Case, Method, method_from_dict
 from vio.children import die_with_parent
 
 log = logging.getLogger(__name__)
@@ -167,7 +167,7 @@ def execute(spec: dict[str, Any], captures: str | None, runs: str | None, tag: s
     t0 = time.perf_counter()
     case = Case(**spec["case"])
     m = spec["method"]
-    method = Method(**{**m, "presets": tuple(m["presets"]), "overrides": tuple(m["overrides"])})
+    method = method_from_dict(m)
     cap_root = Path(captures) if captures else scratch_captures(tag)
     tmp = None
     if runs is None:

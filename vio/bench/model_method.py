@@ -136,7 +136,8 @@ def run_model(case: Case, method: Method, capture: Path, out: Path, score_run) -
     shape = "box" if case.part == "cube" else "auto"
     model_dir, measure_dir, compare_dir = out / "model", out / "measure", out / "compare"
     row["part"] = case.part
-    row["model_s"] = _vio(["model", str(capture), "--run", str(run_dir), "--out", str(model_dir)], out / "model.log")
+    row["model_s"] = _vio(["model", str(capture), "--run", str(run_dir), "--out", str(model_dir), *method.model_args],
+                          out / "model.log")  # fmt: skip
     row["model_peak_rss_mb"] = _children_peak_mb()
     _vio(["measure", str(model_dir / "part.stl"), "--cad", str(cad), "--shape", shape, "--out", str(measure_dir)],
          out / "measure.log")  # fmt: skip

@@ -89,6 +89,7 @@ class Method:
     overrides: tuple[str, ...] = ()  # `section.key=value` config overrides, applied after the presets
     refine: bool = False  # also produce the batch optimum (row `batch`) from the same run
     positions_sigma_m: float = 0.0  # model: anchor the run to known positions (ground truth + this noise); 0: none
+    model_args: tuple[str, ...] = ()  # model: extra `vio model` arguments, e.g. ("--no-visibility",)
 
 
 @dataclass(frozen=True)
@@ -158,6 +159,11 @@ def _cases(where: str, entry: Any) -> list[Case]:
     return cases
 
 
+def method_from_dict(d: dict[str, Any]) -> Method:
+    """A Method back from its dict form (JSON turns its tuples into lists)."""
+    return Method(**{**d, **{k: tuple(d.get(k, ())) for k in ("presets", "overrides", "model_args")}})
+
+
 def _method(where: str, entry: Any) -> Method:
     if not isinstance(entry, dict) or "name" not in entry or "kind" not in entry:
         raise ConfigError(f"{where}: a method must be a mapping with at least name and kind, got {entry!r}")
@@ -166,7 +172,7 @@ def _method(where: str, entry: Any) -> Method:
         raise ConfigError(f"{where}: unknown method field(s) {', '.join(sorted(unknown))}; known: "
                           f"{', '.join(sorted(METHOD_FIELDS))}")  # fmt: skip
     fixed = dict(entry)
-    for k in ("presets", "overrides"):
+    for k in ("presets", "overrides", "model_args"):
         if not isinstance(fixed.get(k, []), list) or not all(isinstance(s, str) for s in fixed.get(k, [])):
             raise ConfigError(f"{where}: {k} must be a list of strings")
         fixed[k] = tuple(fixed.get(k, ()))

@@ -20,7 +20,7 @@ import numpy as np
 
 from vio.atomic import atomic_open, write_json
 from vio.bench.report import empty_row
-from vio.bench.suites import Case, Method
+from vio.bench.suites import Case, Method, method_from_dict
 
 log = logging.getLogger("vio.bench.worker")
 
@@ -152,7 +152,7 @@ def main(task_path: str) -> int:
             result = {"capture": task["capture"]}
         else:
             fields = task["method"]
-            method = Method(**{**fields, "presets": tuple(fields["presets"]), "overrides": tuple(fields["overrides"])})
+            method = method_from_dict(fields)
             out = Path(task["out"])
             out.mkdir(parents=True, exist_ok=True)
             result = {"rows": run_method(case, method, Path(task["capture"]), out)}

@@ -43,6 +43,7 @@ class ModelOptions:
     adjust: bool = True  # bundle-adjust the views (vio.model.adjust) before stereo, anchored to their positions
     seed: int = 0  # RANSAC
     backdrop_below: int = 0  # > 0: image regions at or below this grey level are an empty backdrop (vio.model.fuse)
+    visibility: bool = True  # drop the depths other views see through before fusion (vio.model.visibility)
 
 
 @dataclass
@@ -138,6 +139,12 @@ def model_from_views(
     step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))  # bounds memory: a 2016x1512 map is 24 MB
     maps = dense.depth_maps(views, roi, cfg, references=range(0, len(views), step))
     t0 = _timed(timings, "dense", t0)
+    seen = None
+    if options.visibility:  # before the plane's refit too: a depth seen through is no table either
+        from vio.model.visibility import visibility_filter
+
+        seen = visibility_filter(views, maps, fuse.TRUNC_VOXELS * options.voxel_m)
+        t0 = _timed(timings, "visibility", t0)
     refit = None
     if plane is not None:  # the base closes on this plane: fitted again on the table's dense depth
         plane, roi, refit = isolate.refine_plane(plane, roi, views, maps, rng)
@@ -172,6 +179,7 @@ def model_from_views(
         "mesh": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in checks.items()},
         "base_sigma_mm": None if not (refit or {}).get("refined") else refit["u_base_mm"],
         "adjust": None if adjust_report is None else _plain(adjust_report),
+        "visibility": None if seen is None else _plain(seen),
         "timings_s": timings,
         "warnings": warnings,
         **(extra or {}),

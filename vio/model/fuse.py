@@ -327,6 +327,7 @@ def _base_columns(tsdf: np.ndarray, z0_m: float, voxel_m: float, band_m: float) 
         layer[voted] = side[voted]
 
 
+TRUNC_VOXELS = 4.0  # the truncation distance in voxels (fuse_depth_maps' default)
 MAX_GRID_VOXELS = 2**28  # 268 M voxels: a 250 mm cube at 0.4 mm. A 1.7 G-voxel grid (a region that took in a metre of
 # table) peaked at 16 GB in `vio model`; the 60 s cube's 24 M-voxel grid at 3 GB with its 120 full-size stills
 
@@ -350,7 +351,7 @@ def fuse_depth_maps(
     depth_maps: Sequence[DepthMap],
     roi: Roi,
     voxel_m: float = 4e-4,
-    trunc_voxels: float = 4.0,
+    trunc_voxels: float = TRUNC_VOXELS,
     min_free_views: int = 2,
     coarse_factor: int = 4,
     hole_px: float = 8.0,

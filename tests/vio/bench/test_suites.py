@@ -113,6 +113,10 @@ def test_a_suite_file_by_path(tmp_path):
         ("name: x\nmethods: [{name: a, kind: vio}]\ncases: [{grid: {sead: [1]}}]\n", "unknown case field"),
         ("name: x\nmethod: []\n", "unknown suite key"),
         ("name: [x\n", "not valid YAML"),
+        (
+            "name: x\nmethods: [{name: a, kind: model, model_args: --no-visibility}]\ncases: [{seed: 1}]\n",
+            "list of str",
+        ),
     ],
 )
 def test_a_bad_suite_file_is_one_line(tmp_path, text, message):
@@ -121,6 +125,22 @@ def test_a_bad_suite_file_is_one_line(tmp_path, text, message):
     with pytest.raises(ConfigError, match=message) as info:
         load_suite(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_model_args_reach_the_method_and_survive_its_dict_form(tmp_path):
+    import dataclasses
+
+    from vio.bench.suites import method_from_dict
+
+    path = tmp_path / "m.yaml"
+    path.write_text(
+        "name: m\nmethods: [{name: mv, kind: model, model_args: [--no-visibility]}]\n"
+        "cases: [{scenario: orbit, seed: 1, imu: phone, duration_s: 1}]\n"
+    )
+    method = load_suite(path).methods[0]
+    assert method.model_args == ("--no-visibility",)
+    as_json = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(method).items()}
+    assert method_from_dict(as_json) == method
 
 
 def test_unknown_suite_names_the_known_ones():
