@@ -139,17 +139,17 @@ def model_from_views(
     step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))  # bounds memory: a 2016x1512 map is 24 MB
     maps = dense.depth_maps(views, roi, cfg, references=range(0, len(views), step))
     t0 = _timed(timings, "dense", t0)
-    seen = None
-    if options.visibility:  # before the plane's refit too: a depth seen through is no table either
-        from vio.model.visibility import visibility_filter
-
-        seen = visibility_filter(views, maps, fuse.TRUNC_VOXELS * options.voxel_m)
-        t0 = _timed(timings, "visibility", t0)
     refit = None
     if plane is not None:  # the base closes on this plane: fitted again on the table's dense depth
         plane, roi, refit = isolate.refine_plane(plane, roi, views, maps, rng)
         if not refit["refined"]:
             log.info("support plane kept from the landmarks: %s", refit["reason"])
+    seen = None
+    if options.visibility:  # after the plane's refit: on the table's noisy depth (mm) the check would clip one side
+        from vio.model.visibility import visibility_filter
+
+        seen = visibility_filter(views, maps, fuse.TRUNC_VOXELS * options.voxel_m)
+        t0 = _timed(timings, "visibility", t0)
     volume = fuse.fuse_depth_maps(views, maps, roi, voxel_m=options.voxel_m, backdrop_below=options.backdrop_below)
     points, colours = fuse.fused_points(views, maps, volume)
     t0 = _timed(timings, "fuse", t0)

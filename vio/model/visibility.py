@@ -1,16 +1,19 @@
 """Visibility check of the depth maps before fusion: a depth that other views see through is dropped.
 
 Each depth of a reference view is a point X in space. Every other depth map j gives its own evidence about X: X
-projects to a pixel of j at depth z_j; if even the nearest depth of j around that pixel (3 x 3) lies more than `tol_m`
-beyond z_j, view j sees through X: X is in j's free space (a free-space violation); if j's depth at the pixel is
-within `tol_m` of z_j, j supports X; a depth nearer than z_j (X hidden behind j's surface) or no depth says nothing.
-A depth with more violations than supports is dropped (the stability rule of visibility-based depth map fusion,
-Merrell et al., ICCV 2007, reduced to a keep-or-drop test). It removes what one view's stereo put where the others
-see empty space: windows straddling a silhouette give the background beside it the foreground's depth (the
+projects to a pixel of j at depth z_j; if even the nearest depth of j around that pixel (3 x 3) lies more than
+`tol_m` beyond z_j, view j sees through X: X is in j's free space (a free-space violation); if j's depth at the
+pixel is within `tol_m` of z_j, j supports X; a depth nearer than z_j (X hidden behind j's surface) or no depth says
+nothing. A depth with more violations than supports is dropped (the stability rule of visibility-based depth map
+fusion, Merrell et al., ICCV 2007, reduced to a keep-or-drop test). It removes what one view's stereo put where the
+others see empty space: windows straddling a silhouette give the background beside it the foreground's depth (the
 cube's edges bulged by 1-2 mm with true poses), and the occluding contour of a dark cloth matched in one view of the
 Middlebury temple left a 6 mm blob beside its base. A correct depth is rarely seen through (only at pixel rounding
-on an edge, which the 3 x 3 minimum absorbs) and keeps its place even with no support. Depths are set to NaN in
-place (the maps of 120 full-size stills take 1.5 GB; copies would double that).
+on an edge, which the 3 x 3 minimum absorbs) and keeps its place even with no support. The check is one-sided: a
+depth in front of the surface is seen through, one behind it is only hidden, so on a surface whose depths scatter by
+more than `tol_m` (the table at grazing angles, about 3 mm) it would remove the near half of the scatter; `vio
+model` fits the support plane before it (with it first, the temple's plane tilted by 1.0 deg instead of 0.4). Depths
+are set to NaN in place (the maps of 120 full-size stills take 1.5 GB; copies would double that).
 """
 
 from __future__ import annotations
