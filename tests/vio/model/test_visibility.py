@@ -31,14 +31,14 @@ def fatten(dm: DepthMap, part: np.ndarray, px: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def views_and_maps():
-    _, views, maps = ground_truth_views(16, size=(480, 360), noise_m=1e-4, outliers=0.0, holes=0.03)
+    _, views, maps = ground_truth_views(12, size=(960, 720), noise_m=1e-4, outliers=0.0, holes=0.03)
     return views, maps
 
 
 def test_a_fattened_silhouette_is_dropped_and_true_depths_stay(views_and_maps):
     views, clean = views_and_maps
     maps = [DepthMap(dm.view, dm.depth_m.copy()) for dm in clean]
-    rings = [fatten(dm, part_mask(views[dm.view]), 3) for dm in maps[::4]]
+    rings = [fatten(dm, part_mask(views[dm.view]), 4) for dm in maps[::4]]
     true_before = [np.isfinite(dm.depth_m) for dm in clean]
     report = visibility_filter(views, maps, TOL_M)
     kept_fat = sum(int(np.isfinite(dm.depth_m[ring]).sum()) for dm, ring in zip(maps[::4], rings, strict=True))
@@ -60,7 +60,7 @@ def test_a_fattened_silhouette_is_dropped_and_true_depths_stay(views_and_maps):
 def test_a_depth_no_other_view_sees_is_kept(views_and_maps):
     views, clean = views_and_maps
     one = [DepthMap(clean[0].view, clean[0].depth_m.copy())]
-    fatten(one[0], part_mask(views[one[0].view]), 3)
+    fatten(one[0], part_mask(views[one[0].view]), 4)
     before = np.isfinite(one[0].depth_m).sum()
     report = visibility_filter(views, one, TOL_M)
     assert report.dropped == 0 and np.isfinite(one[0].depth_m).sum() == before
@@ -72,7 +72,7 @@ def test_the_result_does_not_depend_on_the_thread_count(views_and_maps, monkeypa
     for threads in ("1", "2"):
         monkeypatch.setenv("VIO_MODEL_THREADS", threads)
         maps = [DepthMap(dm.view, dm.depth_m.copy()) for dm in clean[:8]]
-        fatten(maps[0], part_mask(views[maps[0].view]), 3)
+        fatten(maps[0], part_mask(views[maps[0].view]), 4)
         visibility_filter(views, maps, TOL_M)
         results.append([np.isnan(dm.depth_m) for dm in maps])
     assert all(np.array_equal(a, b) for a, b in zip(*results, strict=True))
