@@ -95,8 +95,9 @@ class InertialInitialiser:
         return guess
 
     def _gyro_bias(self, ks: list[int], obs: dict[int, dict[int, np.ndarray]]) -> np.ndarray:
-        """The gyro bias the moving start integrates with: from the images' rotations when they give it
-        (`initialisation.gyro_bias_from_images`), else the current estimate."""
+        """The gyro bias the moving start integrates with: from the images' rotations when they give it and a
+        constant bias explains them (`initialisation.gyro_bias_from_images`, `gyro_bias_max_rms_deg`), else the
+        current estimate."""
         st = self.state
         current = np.asarray(st.bias.gyroscope(), float)
         if not self.cfg.gyro_bias_from_images:
@@ -112,6 +113,16 @@ class InertialInitialiser:
             st.warn(
                 f"moving start at keyframe {ks[-1]}: the images' rotations ask for a gyro bias of "
                 f"{np.linalg.norm(est.bias):.3f} rad/s, more than {self.cfg.gyro_bias_max_rad_s} rad/s; not used"
+            )
+            return current
+        if est.rms_after_deg > self.cfg.gyro_bias_max_rms_deg:
+            log.info(
+                "moving start at keyframe %d: the images' rotations ask for a gyro bias of (%.3f, %.3f, %.3f) rad/s "
+                "but stay %.2f deg rms from the gyro's (more than %.2f): not used",
+                ks[-1],
+                *est.bias,
+                est.rms_after_deg,
+                self.cfg.gyro_bias_max_rms_deg,
             )
             return current
         log.info(
