@@ -31,11 +31,13 @@ class LandmarkAdmission:
         graph: gtsam.NonlinearFactorGraph,
         values: gtsam.Values,
         k_now: int | None = None,
+        min_parallax_deg: float | None = None,
     ) -> np.ndarray | None:
         """Admit track j if it triangulates over the poses `world_T_body` (keyframe -> (4, 4)); returns its world
         point (3,) m, or None. Its views at those keyframes become projection factors: at a steady-state keyframe
-        `k_now`, only views of keyframes still in the smoother, plus k_now's own."""
-        p = self.book.try_admit(j, world_T_body)
+        `k_now`, only views of keyframes still in the smoother, plus k_now's own. `min_parallax_deg` replaces the
+        config's."""
+        p = self.book.try_admit(j, world_T_body, min_parallax_deg)
         if p is None:
             return None
         values.insert(L(j), p)

@@ -24,6 +24,7 @@ import numpy as np
 from backend import factors as fb
 from backend.admission import LandmarkAdmission
 from backend.anchoring import KnownPosition, PositionAnchor
+from backend.blind_admission import BlindAdmission
 from backend.fixed_lag import OldLandmarks
 from backend.graph_state import GraphState
 from backend.initialisation.alignment import static_start
@@ -88,6 +89,7 @@ class VioEstimator:
         self.anchor = PositionAnchor(positions, max_dt) if positions else None
         self.recovery = Recovery(cfg.recovery, self.state)
         self.vision = VisionOnlyMotion(cfg.vision_only, self.state, self.book)
+        self.blind = BlindAdmission(cfg.blind_admission, self.state, self.book, self.admission)
         if self.use_imu:
             self.initialiser: InertialInitialiser | VisualInitialiser = InertialInitialiser(
                 cfg.initialisation,
@@ -113,6 +115,7 @@ class VioEstimator:
         self._timings_ms: list[float] = []
         self._num_still = 0  # keyframes with a zero-velocity update
         self._still_t_ns: list[int] = []  # times of the keyframes held by the phone being at rest (run health)
+        self._still_k: set[int] = set()  # ... their indices
         self._num_variables: list[int] = []  # variables in the smoother after each steady-state keyframe
         self._cpu_ms: list[float] = []  # CPU time of this process in each steady-state keyframe's update, ms
         self._scale: ScaleUncertainty | None = None  # from the graph, after finish()
@@ -163,6 +166,7 @@ class VioEstimator:
         self._init_kind = start.kind
         if start.kind == "static":  # the start window's keyframes rest on the at-rest priors
             self._still_t_ns.extend(self.state.t_ns[k] for k in start.keyframes)
+            self._still_k.update(start.keyframes)
         self._timings_ms.append(start.solve_ms)
         self.timing.after_start(list(start.keyframes))
         return [self.state.state(k, start.solve_ms, self.use_imu) for k in start.keyframes]
@@ -227,6 +231,8 @@ class VioEstimator:
             num_reidentified=self.reidentification.num_reidentified,
             num_loop_flushes=self.reidentification.num_loop_flushes,
             num_landmarks_revived=self.old.num_revived,
+            num_blind_adjustments=self.blind.num_runs,
+            num_blind_admitted=self.blind.num_admitted,
             num_position_factors=self.anchor.num_factors if self.anchor is not None else 0,
             recoveries=tuple(self.recovery.events),
             reidentifications=tuple(self.reidentification.events),
@@ -262,6 +268,7 @@ class VioEstimator:
                     st.add(graph, f)
                 self._num_still += 1
                 self._still_t_ns.append(st.t_ns[k])
+                self._still_k.add(k)
             stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
         else:
             pred = gtsam.Pose3(self.vision.predict(prev, k, ids))
@@ -326,10 +333,16 @@ class VioEstimator:
             poses = st.known_poses() if poses is None else poses
             p = self.admission.admit(j, poses, graph, values, k_now=k)
             if p is not None:
-                st.set(L(j), p)
-                st.retired.pop(j, None)  # re-admitted after a rebuild: no longer an old landmark
-                self.reidentification.on_admit(j, p)
-                stamps[L(j)] = t_s
+                self._admitted(j, p, stamps, t_s)
+        if self.use_imu:  # no visual constraint at k and before: admit over adjusted poses
+            for j, p in self.blind.admit(k, ids, self._still_k, graph, values):
+                self._admitted(j, p, stamps, t_s)
+
+    def _admitted(self, j: int, p: np.ndarray, stamps: dict[int, float], t_s: float) -> None:
+        self.state.set(L(j), p)
+        self.state.retired.pop(j, None)  # re-admitted after a rebuild: no longer an old landmark
+        self.reidentification.on_admit(j, p)
+        stamps[L(j)] = t_s
 
     def _reprojections(self, k: int, ids: np.ndarray, world_T_body: np.ndarray) -> dict[int, tuple[float, float]]:
         """Landmark id -> (reprojection error px, depth m) of keyframe k's view of it from the predicted pose, for

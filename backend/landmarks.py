@@ -90,10 +90,13 @@ class LandmarkBook:
         uv_px = np.atleast_2d(uv_px)
         return (uv_px - self.K[:2, 2]) / np.array([self.K[0, 0], self.K[1, 1]])
 
-    def try_admit(self, j: int, world_T_body: dict[int, np.ndarray]) -> np.ndarray | None:
+    def try_admit(
+        self, j: int, world_T_body: dict[int, np.ndarray], min_parallax_deg: float | None = None
+    ) -> np.ndarray | None:
         """Triangulate track j from the views whose pose is known; returns the world point (3,) if admissible.
 
-        Admissible: `min_views` views, `min_parallax_deg` of parallax, in front of every camera (> 5 cm), median
+        Admissible: `min_views` views, `min_parallax_deg` of parallax (the config's unless given), in front of
+        every camera (> 5 cm), median
         reprojection error within `max_reprojection_px`. Views reprojecting beyond `OUTLIER_FACTOR` times that
         are dropped from the track (they never become factors); the point is re-triangulated without them.
         """
@@ -104,7 +107,7 @@ class LandmarkBook:
         Twc = camera_poses(world_T_body, self.body_T_cam, ks)
         uv = np.stack([tr.views[k] for k in ks])
         xn = self.normalized(uv)
-        if parallax_deg(Twc, xn) < self.cfg.min_parallax_deg:
+        if parallax_deg(Twc, xn) < (self.cfg.min_parallax_deg if min_parallax_deg is None else min_parallax_deg):
             return None
         p = triangulate(Twc, xn)
         proj, z = project(Twc, p, self.K)

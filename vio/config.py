@@ -105,6 +105,24 @@ class LandmarkConfig:
 
 
 @dataclass(frozen=True)
+class BlindAdmissionConfig:
+    """Admission over bundle-adjusted poses while keyframes have no visual constraint (backend/blind_admission.py)."""
+
+    window_keyframes: int = 30  # at most this many recent keyframes are adjusted (0: off)
+    after_keyframes: int = 1  # run once this many keyframes in a row have no projection factor
+    before_keyframes: int = 3  # constrained keyframes before the blind stretch included in the window
+    min_tracks: int = 8  # fewer candidate tracks than this: no adjustment
+    min_parallax_deg: float = 1.0  # a candidate's ray parallax over the window, deg (the shaking's is small)
+    max_tracks: int = 150  # candidate tracks in one adjustment, at most
+    max_iterations: int = 20  # Levenberg-Marquardt iterations
+    prior_sigma_rad: float = 1e-3  # prior on the window's first pose (the gauge), rad
+    prior_sigma_m: float = 1e-3  # ... m
+    prior_velocity_sigma: float = 0.05  # prior on the window's first velocity, m/s
+    prior_bias_sigma_acc: float = 0.05  # prior on the window's first accelerometer bias, m/s^2
+    prior_bias_sigma_gyro: float = 0.005  # ... gyro bias, rad/s
+
+
+@dataclass(frozen=True)
 class InitialisationConfig:
     window_s: float = 1.0  # first window buffered before the start, s
     static_max_gyro: float = 0.02  # std of 0.1 s gyro block means below which the start is static, rad/s
@@ -199,6 +217,7 @@ class Config:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+    blind_admission: BlindAdmissionConfig = field(default_factory=BlindAdmissionConfig)
     initialisation: InitialisationConfig = field(default_factory=InitialisationConfig)
     zero_velocity: ZeroVelocityConfig = field(default_factory=ZeroVelocityConfig)
     reidentification: ReidentificationConfig = field(default_factory=ReidentificationConfig)

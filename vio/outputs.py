@@ -150,6 +150,8 @@ def run_summary(
         "num_reidentified": stats.num_reidentified,
         "num_loop_flushes": stats.num_loop_flushes,
         "num_landmarks_revived": stats.num_landmarks_revived,
+        "num_blind_adjustments": stats.num_blind_adjustments,
+        "num_blind_admitted": stats.num_blind_admitted,
         "smoother_variables_max": max(stats.smoother_variables, default=0),
         "num_position_factors": stats.num_position_factors,
         "span_s": counts.span_s,

@@ -250,6 +250,8 @@ class EstimatorStats:
     reidentifications: tuple[ReidentificationEvent, ...]
     warnings: tuple[str, ...]
     num_landmarks_revived: int = 0  # old landmarks back in a fixed-lag window after being marginalised
+    num_blind_adjustments: int = 0  # window adjustments at keyframes without a visual constraint
+    num_blind_admitted: int = 0  # landmarks admitted over those adjusted poses (backend/blind_admission.py)
     smoother_variables: tuple[int, ...] = ()  # variables in the smoother after each steady-state keyframe
     step_cpu_ms: tuple[float, ...] = ()  # CPU time of each steady-state keyframe's update (no start), ms
     scale_sigma_rel: float | None = None  # relative standard deviation of the metric scale, from the graph
