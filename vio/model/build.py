@@ -41,6 +41,7 @@ class ModelOptions:
     roi_world: np.ndarray | None = None  # (2, 3) world min/max corners given by the user (--roi)
     dense_method: str = "sweep"  # sweep | sgbm (vio.model.dense)
     adjust: bool = True  # bundle-adjust the views (vio.model.adjust) before stereo, anchored to their positions
+    adjust_in_roi: bool = True  # ... with features inside the region of interest's window only
     seed: int = 0  # RANSAC
     backdrop_below: int = 0  # > 0: image regions at or below this grey level are an empty backdrop (vio.model.fuse)
     visibility: bool = True  # drop the depths other views see through before fusion (vio.model.visibility)
@@ -134,7 +135,7 @@ def model_from_views(
     if options.adjust:
         from vio.model.adjust import adjust_views
 
-        views, adjust_report = adjust_views(views, None)
+        views, adjust_report = adjust_views(views, roi if options.adjust_in_roi else None)
         t0 = _timed(timings, "adjust", t0)
     step = max(1, int(np.ceil(len(views) / MAX_DEPTH_MAPS)))  # bounds memory: a 2016x1512 map is 24 MB
     maps = dense.depth_maps(views, roi, cfg, references=range(0, len(views), step))
