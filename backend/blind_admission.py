@@ -13,11 +13,12 @@ gets its visual constraints back (scale60 suite, seed 318 with a 3 s still start
 So, at a keyframe left without a projection factor, the keyframes of the blind stretch (and a few before it) get a
 small visual-inertial bundle adjustment: their poses, velocities and biases, the estimator's own `CombinedImuFactor`s
 between them, a prior at the current estimate on the window's first keyframe (the gauge: the adjusted poses stay in
-the graph's frame), and the candidate tracks (views in the window, in front of every camera, with the parallax
-admission asks) as points with Huber-robust projection factors. The tracks that then pass the unchanged admission
-test over the adjusted poses are admitted into the graph with their views, as any other landmark; the graph's own
-poses move to them through the new projection factors. The current keyframe's initial values (it enters the
-smoother in this update) are the adjusted ones.
+the graph's frame), and the candidate tracks (seen now, `min_views` views in the window, in front of every camera,
+at least `blind_admission.min_parallax_deg` of parallax: 1 deg, since the shaking's 3-4 cm give some tracks only
+1.3-2 deg) as points with Huber-robust projection factors. The tracks that then pass the admission test (the same
+reprojection gate, that parallax) over the adjusted poses are admitted into the graph with their views, as any
+other landmark; the graph's own poses move to them through the new projection factors. The current keyframe's
+initial values (it enters the smoother in this update) are the adjusted ones.
 """
 
 from __future__ import annotations
@@ -85,7 +86,6 @@ class BlindAdmission:
             return []
         poses = {kk: (values.atPose3(X(kk)) if kk == k else st.values.atPose3(X(kk))).matrix() for kk in window}
         candidates = self._candidates(ids, poses)
-        log.debug("keyframe %d: blind since %d, %d candidates", k, first, len(candidates))
         if len(candidates) < cfg.min_tracks:
             return []
         adjusted = self._adjust(window, candidates, values)
@@ -115,8 +115,8 @@ class BlindAdmission:
         return out
 
     def _candidates(self, ids: np.ndarray, poses: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """Tracks seen at the latest keyframe, not admitted, with `min_views` views in the window, the parallax
-        admission asks and in front of every camera: id -> triangulated point (3,)."""
+        """Tracks seen at the latest keyframe, not admitted, with `min_views` views in the window, at least
+        `min_parallax_deg` of parallax and in front of every camera: id -> triangulated point (3,)."""
         book, body_T_cam = self.book, self.book.body_T_cam
         out: dict[int, np.ndarray] = {}
         for j in ids.tolist():
