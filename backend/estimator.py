@@ -114,8 +114,7 @@ class VioEstimator:
         self._init_kind = ""  # the start that succeeded: static | moving | visual
         self._timings_ms: list[float] = []
         self._num_still = 0  # keyframes with a zero-velocity update
-        self._still_t_ns: list[int] = []  # times of the keyframes held by the phone being at rest (run health)
-        self._still_k: set[int] = set()  # ... their indices
+        self._still_k: set[int] = set()  # keyframes held by the phone being at rest (run health, blind admission)
         self._num_variables: list[int] = []  # variables in the smoother after each steady-state keyframe
         self._cpu_ms: list[float] = []  # CPU time of this process in each steady-state keyframe's update, ms
         self._scale: ScaleUncertainty | None = None  # from the graph, after finish()
@@ -165,7 +164,6 @@ class VioEstimator:
     def _started(self, start: Start) -> list[StateEstimate]:
         self._init_kind = start.kind
         if start.kind == "static":  # the start window's keyframes rest on the at-rest priors
-            self._still_t_ns.extend(self.state.t_ns[k] for k in start.keyframes)
             self._still_k.update(start.keyframes)
         self._timings_ms.append(start.solve_ms)
         self.timing.after_start(list(start.keyframes))
@@ -245,7 +243,7 @@ class VioEstimator:
                 (k, t, self.state.projections.get(k, 0)) for k, t in sorted(self.state.t_ns.items())
             ),
             time_offset=self.timing.report(),
-            still_keyframes=tuple(self._still_t_ns),
+            still_keyframes=tuple(self.state.t_ns[k] for k in sorted(self._still_k)),
         )
 
     # ----------------------------------------------------------------- steady state
@@ -267,7 +265,6 @@ class VioEstimator:
                 for f in fb.no_motion_factors(prev, k, zv.sigma_rad, zv.sigma_m, zv.velocity_sigma):
                     st.add(graph, f)
                 self._num_still += 1
-                self._still_t_ns.append(st.t_ns[k])
                 self._still_k.add(k)
             stamps = {X(k): t_s, V(k): t_s, B(k): t_s}
         else:
