@@ -24,6 +24,9 @@ log = logging.getLogger(__name__)
 
 _MIN_POINTS = 50  # fewer points than this cannot give a plane or a part
 _CLOSE_M = 5e-3  # the footprint's closing radius
+# table points around the part that refit the support plane: their mean height's standard error at the table
+# depth's 3 mm spread is 0.13 mm at 500 (a 90 x 70 mm part leaves 1,700-2,000 in its margin, a 76 mm cube 9,000-18,000)
+_MIN_TABLE_POINTS = 500
 _PROBE = 200  # points nearest the look-at point that set the cluster's cell size: a run's landmarks put 300-400 on
 # a 76 mm cube, so 2000 reached into the table's haze (landmarks 8-30 mm above it) and gave 0.19-0.25 m cells
 # that joined the table to the part (60 s orbits, seeds 101 and 102: 1.4 x 1.1 m regions; 200: 0.10 x 0.10 m)
@@ -333,7 +336,7 @@ def refine_plane(
     around the part), except where the part stands: 1 mm footprint cells holding two points or more from
     `wall_m` up (the table's own depth noise reaches 5 mm), grown by `clear_m`. Fitted by least squares, from
     the points within `band_m` / 2 of their median height, then trimmed at 3 robust scales (3 rounds). Refused
-    (the old plane kept, the reason in the report) when fewer than 2000 table points surround the part, or they do
+    (the old plane kept, the reason in the report) when fewer than _MIN_TABLE_POINTS surround the part, or they do
     on fewer than 3 of 4 sides, or the fit moves the plane more than `max_shift_m` under the part or tilts it more
     than `max_tilt_deg`.
 
@@ -363,7 +366,7 @@ def refine_plane(
     angle = np.arctan2(table[:, 1] - centre[1], table[:, 0] - centre[0])
     sides = len(np.unique(np.floor((angle + np.pi) / (0.5 * np.pi)).astype(int) % 4))
     report.update(table_points=int(len(table)), sides=sides)
-    if len(table) < 2000 or sides < 3:
+    if len(table) < _MIN_TABLE_POINTS or sides < 3:
         report["reason"] = f"{len(table)} table points around the part, on {sides} of 4 sides"
         return plane, roi, report
     inl = np.abs(table[:, 2] - np.median(table[:, 2])) < 0.5 * band_m  # centred on the table, not the old plane

@@ -45,6 +45,11 @@ class MatchConfig:
     min_track_views: int = 3  # a track needs this many views
     min_parallax_deg: float = 2.0  # largest angle between a track's rays
     roi_margin_px: int = 16  # the ROI window is grown by this much
+    # SIFT runs on the image resized by detect_scale (INTER_AREA; keypoints in full-size px), 0 = by the budget:
+    # the largest multiple of 0.05 that brings the image to max_detect_pixels (0.70 for the 2016 x 1512 stills,
+    # 1.0 for images up to 1.5 MP; docs/BENCHMARKS.md: the adjustment's features at 0.7)
+    detect_scale: float = 0.0
+    max_detect_pixels: int = 1_500_000
 
 
 @dataclass(frozen=True)
@@ -70,6 +75,16 @@ class Tracks:
     num_matches: int  # verified matches over all pairs
 
 
+def detect_scale(view: View, config: MatchConfig) -> float:
+    """The factor SIFT's image is resized by for this view (`MatchConfig.detect_scale`)."""
+    if config.detect_scale > 0:
+        return float(config.detect_scale)
+    w, h = view.size
+    if config.max_detect_pixels <= 0 or w * h <= config.max_detect_pixels:
+        return 1.0
+    return max(0.05, np.floor(20.0 * np.sqrt(config.max_detect_pixels / (w * h)) + 1e-9) / 20.0)
+
+
 def detect(view: View, roi: Roi | None, config: MatchConfig) -> Features:
     """SIFT keypoints of a view's grey image, inside the ROI's projected window (none when the ROI is out of sight)."""
     box = roi_bbox(view, roi, config.roi_margin_px)
@@ -80,11 +95,17 @@ def detect(view: View, roi: Roi | None, config: MatchConfig) -> Features:
     sift = cv2.SIFT_create(
         nfeatures=config.max_features, contrastThreshold=config.contrast_threshold, enable_precise_upscale=True
     )
-    keypoints, descriptors = sift.detectAndCompute(grey[y0:y1, x0:x1], None)
+    crop, f = grey[y0:y1, x0:x1], detect_scale(view, config)
+    if f != 1.0:
+        crop = cv2.resize(crop, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
+    keypoints, descriptors = sift.detectAndCompute(crop, None)
     if descriptors is None:
         return Features(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 128), np.float32))
-    uv = np.array([k.pt for k in keypoints], float).reshape(-1, 2) + [x0, y0]
-    return Features(uv, np.array([k.size for k in keypoints], float), descriptors.astype(np.float32))
+    # pixel centres: u_full + 0.5 = (u_small + 0.5) / f (OpenCV's resize keeps the image's outer edges)
+    uv, size = np.array([k.pt for k in keypoints], float).reshape(-1, 2), np.array([k.size for k in keypoints], float)
+    if f != 1.0:
+        uv, size = (uv + 0.5) / f - 0.5, size / f
+    return Features(uv + [x0, y0], size, descriptors.astype(np.float32))
 
 
 def detect_all(views: list[View], roi: Roi | None, config: MatchConfig) -> list[Features]:

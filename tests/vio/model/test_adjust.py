@@ -155,6 +155,27 @@ def test_features_on_threads_are_the_serial_ones(orbit, monkeypatch):
         assert np.array_equal(a.uv, b.uv) and np.array_equal(a.descriptors, b.descriptors)
 
 
+def test_features_from_the_reduced_image_are_in_full_size_pixels(orbit):
+    """SIFT runs on the still resized by `detect_scale` (the adjustment's cost is the full-size pyramid): its
+    keypoints must come back in the full image's pixels, centre to centre, not offset by the resize's half pixel."""
+    from vio.model.matches import MatchConfig, detect, detect_scale
+
+    truth, images, K = orbit
+    view = View("v0", images[0], K, truth[0])
+    assert detect_scale(view, MatchConfig()) == 1.0  # these renders are half the stills' size: under the budget
+    stills = View("s", np.zeros((1512, 2016), np.uint8), K, truth[0])
+    assert detect_scale(stills, MatchConfig()) == 0.7 and detect_scale(stills, MatchConfig(max_detect_pixels=0)) == 1
+    full = detect(view, None, MatchConfig())
+    small = detect(view, None, MatchConfig(detect_scale=0.7))
+    dist = np.linalg.norm(small.uv[:, None, :] - full.uv[None, :, :], axis=2)
+    nearest = dist.argmin(axis=1)
+    same = (dist[np.arange(len(small.uv)), nearest] < 1.0) & (np.abs(small.size / full.size[nearest] - 1) < 0.2)
+    assert same.sum() > 200
+    offset = small.uv[same] - full.uv[nearest[same]]
+    assert np.all(np.abs(np.median(offset, axis=0)) < 0.05), np.median(offset, axis=0)  # 0.21 px without the shift
+    assert np.allclose(np.median(small.size[same] / full.size[nearest[same]]), 1.0, atol=0.03)
+
+
 def test_matches_on_threads_are_the_serial_ones(orbit, monkeypatch):
     """Pairs are matched on every core; FLANN's random trees are seeded per view, so the matches do not depend on
     the thread count (they did depend on the order the indices were built in before)."""
