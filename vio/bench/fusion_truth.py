@@ -8,6 +8,7 @@ against the CAD. What it measures is what the stereo and the fusion add to a per
 "The flap along the base").
 
     python -m vio.bench.fusion_truth CAPTURE [CAPTURE ...] --out DIR [--band-mm 4] [--margin-mm 10] [--no-visibility]
+        [--no-creases]
 """
 
 from __future__ import annotations
@@ -36,10 +37,16 @@ def part_roi(capture: str | Path, margin_m: float) -> Roi:
 
 
 def fusion_truth(
-    capture: str | Path, out: str | Path, band_m: float = 4e-3, margin_m: float = 0.01, visibility: bool = True
+    capture: str | Path,
+    out: str | Path,
+    band_m: float = 4e-3,
+    margin_m: float = 0.01,
+    visibility: bool = True,
+    creases: bool = True,
 ) -> dict:
     """The report of `vio compare` (dict) for the model of `capture` from its true poses, written under `out`
-    (`visibility`: the depths other views see through dropped before fusion, as `vio model` does)."""
+    (`visibility`: the depths other views see through dropped before fusion, as `vio model` does; `creases`: holes
+    along convex edges filled, `fuse.fill_creases`)."""
     from vio.model import dense, fuse, mesh
     from vio.model.build import MAX_DEPTH_MAPS, ModelOptions
     from vio.model.report import compare
@@ -59,7 +66,7 @@ def fusion_truth(
         from vio.model.visibility import visibility_filter
 
         visibility_filter(views, maps, fuse.TRUNC_VOXELS * ModelOptions().voxel_m)
-    volume = fuse.fuse_depth_maps(views, maps, roi, base_band_m=band_m)
+    volume = fuse.fuse_depth_maps(views, maps, roi, base_band_m=band_m, fill_creases=creases)
     part = mesh.to_support(mesh.mesh_from_volume(volume, frame="world"), roi.world_T_support)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -75,13 +82,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="output folder (one subfolder per capture)")
     ap.add_argument("--band-mm", type=float, default=4.0, help="the fusion's base band, mm (0: off)")
     ap.add_argument("--no-visibility", dest="visibility", action="store_false", help="no visibility check")
+    ap.add_argument("--no-creases", dest="creases", action="store_false", help="no crease filling in the fusion")
     ap.add_argument("--margin-mm", type=float, default=10.0, help="the part's box grown by this much, mm")
     args = ap.parse_args(argv)
     print("capture | window mm | std mm | p99 mm | completeness")
     for path in args.captures:
         try:
             rep = fusion_truth(path, Path(args.out) / Path(path).name, args.band_mm * 1e-3, args.margin_mm * 1e-3,
-                               args.visibility)  # fmt: skip
+                               args.visibility, args.creases)  # fmt: skip
         except (VioError, ValueError, OSError) as exc:
             print(f"{path}: {exc}")
             return 2
