@@ -160,11 +160,10 @@ def fill_holes(
     hr, hc = np.nonzero(lab)
     hl = lab[hr, hc]
     keep = good[hl]
-    c = coef[hl[keep]]
-    d[hr[keep], hc[keep]] = (
-        zc + c[:, 0] + c[:, 1] * (hc[keep] - mean_u[hl[keep]]) + c[:, 2] * (hr[keep] - mean_v[hl[keep]])
-    ).astype(np.float32)
-    holes[hr[keep], hc[keep]] = True
+    kr, kc, kl = hr[keep], hc[keep], hl[keep]
+    c = coef[kl]
+    d[kr, kc] = (zc + c[:, 0] + c[:, 1] * (kc - mean_u[kl]) + c[:, 2] * (kr - mean_v[kl])).astype(np.float32)
+    holes[kr, kc] = True
     if creases:
         _fill_creases(d, valid, holes, lab, n, ~good & (cnt >= 8), (hr, hc, hl), max_rms_m)
     return holes
@@ -319,11 +318,11 @@ def prepare_depth(
     cos = z / (|n| |r|)."""
     rows, cols = _grid(window, step)
     d, valid, med = despeckle(depth.depth_m[rows, cols], speckle_m)
-    shift = np.array([[1.0, 0.0, -(cols.start or 0)], [0.0, 1.0, -(rows.start or 0)], [0.0, 0.0, 1.0]])
-    K = np.diag([1.0 / step, 1.0 / step, 1.0]) @ shift @ view.K
     holes = fill_holes(d, valid, fill_px / step, 0.25 * speckle_m, fill_creases)
     h, w = d.shape
     filled = np.where(valid | holes, d, med)  # normals next to holes from the local median
+    shift = np.array([[1.0, 0.0, -(cols.start or 0)], [0.0, 1.0, -(rows.start or 0)], [0.0, 0.0, 1.0]])
+    K = np.diag([1.0 / step, 1.0 / step, 1.0]) @ shift @ view.K
     x = ((np.arange(w) - K[0, 2]) / K[0, 0]).astype(np.float32)[None, :]
     y = ((np.arange(h) - K[1, 2]) / K[1, 1]).astype(np.float32)[:, None]
     a = cv2.filter2D(filled, -1, _DIFF * np.float32(K[0, 0]), borderType=cv2.BORDER_REPLICATE)
