@@ -31,7 +31,8 @@ def _cmd_model(args: argparse.Namespace) -> int:
 
     voxel_m = args.voxel_mm * 1e-3
     opts = ModelOptions(args.source, args.max_views, voxel_m, roi_world=args.roi, adjust=args.adjust,
-                        backdrop_below=args.backdrop_below, visibility=args.visibility)  # fmt: skip
+                        backdrop_below=args.backdrop_below, visibility=args.visibility,
+                        fill_creases=args.fill_creases)  # fmt: skip
     try:
         if args.middlebury or args.colmap:
             res = model_from_image_set(
@@ -119,6 +120,8 @@ def add_model_commands(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-visibility", dest="visibility", action="store_false",
                    help="fuse every depth, also those other views see through (no visibility check)")  # fmt: skip
+    p.add_argument("--no-crease-fill", dest="fill_creases", action="store_false",
+                   help="leave the stereo's holes along convex edges open in the fusion")  # fmt: skip
     p.add_argument("--roi", type=_box, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", help="region of interest (world, m)")
     p.add_argument("--backdrop-below", type=int, default=0, metavar="GREY",
                    help="an object shot against black: image regions at or below this grey level (0-255) are empty "

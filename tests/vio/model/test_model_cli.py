@@ -37,6 +37,7 @@ def test_vio_model_writes_a_watertight_part(tmp_path):
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert meta["status"] == "degraded" and "tracking lost 1.00-2.00 s" in meta["warnings"][0]
     assert meta["mesh"]["watertight"] and meta["mesh"]["non_manifold_edges"] == 0 and meta["num_views"] == 8
+    assert meta["fill_creases"] is True  # the default; --no-crease-fill leaves the edges' holes open
     v, f = read_stl_mesh(tmp_path / "m" / "part.stl")  # millimetres, the part on its base
     assert 60.0 < np.ptp(v[:, 2]) < 90.0 and len(f) > 1000
     assert (tmp_path / "m" / "dense.ply").stat().st_size > 0 and (tmp_path / "m" / "part.ply").stat().st_size > 0
