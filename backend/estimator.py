@@ -35,6 +35,7 @@ from backend.keys import B, L, V, X, track_of
 from backend.landmarks import LandmarkBook
 from backend.recovery import Recovery
 from backend.reidentification import Reidentification
+from backend.scale_chunks import ScaleChunks
 from backend.segments import TrackSegments
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
 from backend.time_offset import CameraTiming
@@ -50,6 +51,8 @@ log = logging.getLogger(__name__)
 Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
 _MIN_DEPTH_M = 0.05  # a landmark's new view must be at least this far in front of the camera, m
 _EXACT_MARGIN = 1e-6  # px and m: the all-at-once reprojection decides only when this far from a threshold
+PRUNE_EVERY_KEYFRAMES = 50  # old track views and lost tracks' segments are forgotten this often (bounded memory)
+PRUNE_MARGIN = 20  # keyframes kept beyond the oldest one any part of the estimator looks back to
 
 
 class VioEstimator:
@@ -62,8 +65,11 @@ class VioEstimator:
         preintegrate: Preintegrate,
         cfg: Config,
         positions: list[KnownPosition] | None = None,
+        unique_track_ids: bool = False,
     ) -> None:
         self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
+        self.unique_track_ids = unique_track_ids  # the tracks' source never reuses an id (the tracker): lost tracks
+        # can be forgotten altogether (`_prune`); tracks read from a file may reuse ids
         self.use_imu = cfg.estimator.use_imu
         self._warnings: list[str] = []
         self.state = GraphState(
@@ -118,6 +124,10 @@ class VioEstimator:
         self._num_variables: list[int] = []  # variables in the smoother after each steady-state keyframe
         self._cpu_ms: list[float] = []  # CPU time of this process in each steady-state keyframe's update, ms
         self._scale: ScaleUncertainty | None = None  # from the graph, after finish()
+        self._chunks: ScaleChunks | None = None  # bounded memory: fixed lag, factors not kept (backend/scale_chunks.py)
+        if cfg.smoother.kind == "fixed_lag" and not cfg.smoother.keep_factors and not cfg.run.refine:
+            compute = self.use_imu and cfg.estimator.scale_uncertainty
+            self._chunks = ScaleChunks(cfg.landmarks.prior_sigma_m, compute)
 
     @property
     def initialised(self) -> bool:
@@ -175,6 +185,9 @@ class VioEstimator:
         info: dict[str, Any] = {"refined": False}
         st = self.state
         st.sync()
+        if refine and self._chunks is not None and self._chunks.start > 0:
+            self._warn("no batch refinement: the factors of finished chunks were let go (smoother.keep_factors)")
+            refine = False
         if refine and self.initialised:
             t0 = time.perf_counter()
             try:
@@ -185,7 +198,10 @@ class VioEstimator:
             info["refine_s"] = time.perf_counter() - t0
         if self.initialised and self.use_imu and self.cfg.estimator.scale_uncertainty:
             t0 = time.perf_counter()
-            self._scale = scale_uncertainty(st.all_factors, st.values, sorted(st.t_ns))
+            if self._chunks is None:
+                self._scale = scale_uncertainty(st.all_factors, st.values, sorted(st.t_ns))
+            else:
+                self._scale = self._chunks.finish(st.all_factors, st.values, sorted(st.t_ns), st.smoother)
             info["scale_uncertainty_s"] = time.perf_counter() - t0
             if self._scale is None:
                 self._warn("the scale's uncertainty could not be computed from the graph")
@@ -250,6 +266,8 @@ class VioEstimator:
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
         t0, c0 = time.perf_counter(), time.process_time()
         st = self.state
+        if self._chunks is not None:
+            self._chunks.mark(k, st.all_factors.size())
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         t_s = st.t_ns[k] * 1e-9
         if self.use_imu:
@@ -289,11 +307,27 @@ class VioEstimator:
         st.absorb(est)
         if self.use_imu:
             st.bias = st.values.atConstantBias(B(k))
+        if k % PRUNE_EVERY_KEYFRAMES == 0:
+            self._prune(k)
+        if self._chunks is not None and self._chunks.due(len(st.t_ns)):
+            rest = self._chunks.maybe_close(st.all_factors, st.values, sorted(st.t_ns), st.smoother, st.pims)
+            if rest is not None:
+                st.all_factors = rest
         ms = (time.perf_counter() - t0) * 1e3
         self._timings_ms.append(ms)
         self._num_variables.append(st.smoother.num_variables())
         self._cpu_ms.append((time.process_time() - c0) * 1e3)
         return st.state(k, ms, self.use_imu)
+
+    def _prune(self, k: int) -> None:
+        """Bounded memory: forget the track views no part of the estimator looks at again (older than the
+        triangulation window and the blind stretch's, with a margin) and, when track ids are never reused, the lost
+        tracks and their segments; the estimate is unchanged to the last bit (tests/backend/test_bounded_memory.py)."""
+        blind = self.cfg.blind_admission
+        horizon = max(self.state.window_keyframes, blind.window_keyframes + blind.before_keyframes) + PRUNE_MARGIN
+        self.book.prune(k - horizon, drop_lost=self.unique_track_ids)
+        if self.unique_track_ids:
+            self.segments.forget_unseen()
 
     def _observe_landmarks(
         self,

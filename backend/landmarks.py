@@ -16,20 +16,33 @@ from vio.config import LandmarkConfig
 OUTLIER_FACTOR = 2.5  # a view reprojecting beyond this many times max_reprojection_px is an outlier
 
 
-@dataclass
+@dataclass(slots=True)
 class Track:
     """One feature track's keyframe observations: keyframe index -> undistorted pixel (2,)."""
 
     views: dict[int, np.ndarray] = field(default_factory=dict)
     admitted: bool = False
     rejected_until: int = -1  # do not retry triangulation before this many views
+    # after `LandmarkBook.prune`: (earliest kept view, the start of the unbroken run it belonged to), and the
+    # track's first view (keyframe, pixel), which its pruned views no longer show
+    origin: tuple[int, int] | None = None
+    first: tuple[int, np.ndarray] | None = None
 
     def run_start(self, k: int) -> int:
         """The first keyframe of the unbroken run of views (consecutive keyframes) that ends at or passes k."""
         start = k
         while start - 1 in self.views:
             start -= 1
+        if self.origin is not None and start == self.origin[0]:
+            return self.origin[1]
         return start
+
+    def first_view(self) -> tuple[int, np.ndarray]:
+        """(keyframe, undistorted pixel) of the track's first view, also after its old views were pruned."""
+        if self.first is not None:
+            return self.first
+        k0 = min(self.views)
+        return k0, self.views[k0]
 
 
 def camera_poses(world_T_body: dict[int, np.ndarray], body_T_cam: np.ndarray, ks: list[int]) -> np.ndarray:
@@ -149,9 +162,37 @@ class LandmarkBook:
             dv = self.K[1, 1] * p_cam[:, 1] / z + self.K[1, 2] - uv_px[:, 1]
             return np.sqrt(du * du + dv * dv), z
 
+    def prune(self, before: int, drop_lost: bool) -> int:
+        """Bounded memory: drop the views of keyframes before `before` (older than anything the estimator looks
+        at again: admission, the blind stretch and the at-rest test look at most a window back); with `drop_lost`
+        (the source never reuses a track id, as the tracker does) also the tracks left without views that never
+        became landmarks. An admitted track stays (its landmark can be seen again), its first view kept apart.
+        Returns the number of views dropped. What the estimator computes is unchanged: `run_start` answers as
+        before (`origin`), and no decision counts views outside the window."""
+        dropped, gone = 0, []
+        for j, tr in self.tracks.items():
+            if not tr.views or min(tr.views) >= before:
+                continue
+            if tr.admitted and tr.first is None:
+                tr.first = tr.first_view()
+            kept = {kk: uv for kk, uv in tr.views.items() if kk >= before}
+            if kept:
+                k_first = min(kept)
+                if k_first - 1 in tr.views:  # its run began among the pruned views
+                    tr.origin = (k_first, tr.run_start(k_first))
+            dropped += len(tr.views) - len(kept)
+            tr.views = kept  # a new dict: one emptied by deletions keeps its table
+            if not kept and not tr.admitted and drop_lost:
+                gone.append(j)
+        for j in gone:
+            del self.tracks[j]
+        return dropped
+
     def forget_before(self, k: int) -> None:
         """Drop views older than keyframe k and un-admit every landmark (used after a solver rebuild)."""
         for tr in self.tracks.values():
             tr.views = {kk: uv for kk, uv in tr.views.items() if kk >= k}
+            if tr.origin is not None:  # a run that began among pruned views now begins at k at the earliest
+                tr.origin = None if tr.origin[0] < k else (tr.origin[0], max(tr.origin[1], k))
             tr.admitted = False
             tr.rejected_until = -1

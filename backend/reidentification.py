@@ -98,10 +98,9 @@ class Reidentification:
                     continue
                 self._loop_budget -= 1
             src = int(ids[new[row]])
-            views = self.book.tracks[lid].views
-            k0 = min(views)
+            k0, uv0 = self.book.tracks[lid].first_view()
             self.events.append(
-                ReidentificationEvent(st.t_ns[k], lid, np.array(uv_distorted[new[row]], float), st.t_ns[k0], views[k0])
+                ReidentificationEvent(st.t_ns[k], lid, np.array(uv_distorted[new[row]], float), st.t_ns[k0], uv0)
             )
             self._alias[src], self._alias_rev[lid] = lid, src
             out[new[row]] = lid

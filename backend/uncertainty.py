@@ -70,31 +70,51 @@ def scale_uncertainty(
     keyframes: list[int],
     num_pairs: int = 5,
     chunk_keyframes: int = CHUNK_KEYFRAMES,
+    pin_first: bool = False,
+    landmark_prior_sigma_m: float | None = None,
 ) -> ScaleUncertainty | None:
     """The scale's relative standard deviation from `graph` linearised at `values`, over `num_pairs` pairs of
     keyframes at least half the trajectory's extent apart (per chunk of at most `chunk_keyframes` keyframes, the
-    chunks combined; module docstring); None when no chunk's graph can be marginalised."""
+    chunks combined; module docstring); None when no chunk's graph can be marginalised. `pin_first`: the first
+    chunk's first pose is pinned too (the run's prior is not in `graph`); `landmark_prior_sigma_m`: the graph holds
+    no landmark priors, each landmark gets one of this sigma (`ScaleChunks`)."""
     ks = [k for k in keyframes if values.exists(X(k))]
     if len(ks) < 4:
         return None
     n = -(-len(ks) // max(int(chunk_keyframes), 4))
-    if n == 1:
+    if n == 1 and not pin_first and landmark_prior_sigma_m is None:
         return _graph_scale(graph, values, ks, num_pairs)
     chunks = [[int(k) for k in c] for c in np.array_split(np.asarray(ks, np.int64), n)]
-    found = []
-    for c, (sub, chunk) in enumerate(zip(_chunk_graphs(graph, values, chunks), chunks, strict=True)):
-        sub_values = gtsam.Values()
-        for key in sub.keyVector():
-            sub_values.insert(key, value_of(values, key))
-        result = _graph_scale(sub, sub_values, chunk, num_pairs)
-        if result is None or not result.sigma_rel > 0:
-            log.warning("scale uncertainty: chunk %d of %d (keyframes %d-%d) left out", c + 1, n, chunk[0], chunk[-1])
-            continue
-        found.append(result)
+    subs = _chunk_graphs(graph, values, chunks, pin_first, landmark_prior_sigma_m)
+    return combine(
+        [
+            _sub_scale(sub, values, chunk, num_pairs, f"chunk {c + 1} of {n}")
+            for c, (sub, chunk) in enumerate(zip(subs, chunks, strict=True))
+        ]
+    )
+
+
+def combine(results: Sequence[ScaleUncertainty | None]) -> ScaleUncertainty | None:
+    """Independent measurements of one scale (chunks) by inverse variance; None when there is none."""
+    found = [r for r in results if r is not None]
     if not found:
         return None
     sigma = float(np.sum([r.sigma_rel**-2.0 for r in found]) ** -0.5)
     return ScaleUncertainty(sigma, tuple(pair for r in found for pair in r.pairs))
+
+
+def _sub_scale(
+    sub: gtsam.NonlinearFactorGraph, values: gtsam.Values, chunk: list[int], num_pairs: int, name: str
+) -> ScaleUncertainty | None:
+    """`_graph_scale` of one chunk's graph (its values taken from `values`); None, with a warning, when it fails."""
+    sub_values = gtsam.Values()
+    for key in sub.keyVector():
+        sub_values.insert(key, value_of(values, key))
+    result = _graph_scale(sub, sub_values, chunk, num_pairs)
+    if result is None or not result.sigma_rel > 0:
+        log.warning("scale uncertainty: %s (keyframes %d-%d) left out", name, chunk[0], chunk[-1])
+        return None
+    return result
 
 
 def _graph_scale(
@@ -150,12 +170,18 @@ def _joint_pose_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Valu
 
 
 def _chunk_graphs(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, chunks: list[list[int]]
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    chunks: list[list[int]],
+    pin_first: bool = False,
+    landmark_prior_sigma_m: float | None = None,
 ) -> list[gtsam.NonlinearFactorGraph]:
     """One graph per chunk of keyframes: the factors whose keyframe variables (X, V, B) all belong to the chunk,
     those on landmarks only when the chunk sees each of their landmarks at least twice, and landmark-only factors
-    likewise; chunks after the first get their first pose pinned in the gauge directions. Factors across a
-    chunk's border (the IMU factor between two chunks) are left out."""
+    likewise; chunks after the first (and the first too with `pin_first`) get their first pose pinned in the gauge
+    directions. Factors across a chunk's border (the IMU factor between two chunks) are left out. With
+    `landmark_prior_sigma_m` the landmark-only factors are ignored and each landmark of a chunk gets a prior of
+    that sigma at its value (the admission's prior: the same information, whatever its mean)."""
     chunk_of = {k: c for c, chunk in enumerate(chunks) for k in chunk}
     kept: list[list[tuple[gtsam.NonlinearFactor, list[int]]]] = [[] for _ in chunks]
     views: list[dict[int, int]] = [{} for _ in chunks]
@@ -178,13 +204,18 @@ def _chunk_graphs(
             kept[c].append((factor, landmarks))
             for key in landmarks:
                 views[c][key] = views[c].get(key, 0) + 1
+    if landmark_prior_sigma_m is not None:
+        landmark_only = []
     out = []
     for c, chunk in enumerate(chunks):
         sub = gtsam.NonlinearFactorGraph()
         for factor, landmarks in kept[c] + landmark_only:
             if all(views[c].get(key, 0) >= 2 for key in landmarks):
                 sub.add(factor)
-        if c > 0:
+        if landmark_prior_sigma_m is not None:
+            for key in sorted(key for key, n in views[c].items() if n >= 2):
+                sub.add(fb.landmark_prior(gtsam.Symbol(key).index(), values.atPoint3(key), landmark_prior_sigma_m))
+        if c > 0 or pin_first:
             k0 = chunk[0]
             sub.add(
                 fb.pose_prior_gravity_aware(k0, values.atPose3(X(k0)), FREE_TILT_RAD, GAUGE_SIGMA_RAD, GAUGE_SIGMA_M)

@@ -93,6 +93,10 @@ class SmootherConfig:
     relinearize_threshold: float = 0.001
     relinearize_skip: int = 10  # relinearize every 10th update (measured: 2x less CPU, same accuracy)
     factorization: str = "CHOLESKY"  # iSAM2: CHOLESKY (25% faster) | QR (survives long IMU-only stretches)
+    # every factor kept to the end (--refine, the scale's sigma); false, fixed lag only: the sigma chunk by chunk as
+    # the run goes and each finished chunk's factors let go, so memory stays bounded (backend/scale_chunks.py);
+    # --refine keeps them anyway
+    keep_factors: bool = True
 
 
 @dataclass(frozen=True)

@@ -182,7 +182,7 @@ def _run(
     for sink in sinks:
         sink.on_start(cap.camera, cap.imu, cap.ground_truth)
     pre = ImuPreintegrator(cap.imu, cap.imu_calib, cfg.imu)
-    est = VioEstimator(cap.camera, cap.imu, pre.between, cfg, known)
+    est = VioEstimator(cap.camera, cap.imu, pre.between, cfg, known, unique_track_ids=cap.tracks is None)
     selector = KeyframeSelector(cfg.keyframes)
     n_frames = cap.num_frames if cap.tracks is None else len(cap.tracks)
     stop = n_frames if cfg.run.max_frames <= 0 else min(n_frames, cfg.run.max_frames)

@@ -118,15 +118,31 @@ class _Failed:
 
 
 class TrackColours:
-    """The image colour of each track where it was first seen (grey images give grey), for landmarks.ply."""
+    """The image colour of each track where it was first seen (grey images give grey), for landmarks.ply.
+
+    Bounded memory: a tracker numbers its tracks 0, 1, 2, ..., so the colours sit in one array indexed by track
+    id (RGB and a "seen" byte, 4 bytes a track; a dict of arrays took about 75); ids outside `_ARRAY_IDS` (tracks
+    read from a file) go to a dict."""
+
+    _ARRAY_IDS = 1 << 24
 
     def __init__(self) -> None:
-        self._rgb: dict[int, np.ndarray] = {}
+        self._table = np.zeros((0, 4), np.uint8)  # track id -> R, G, B, seen
+        self._rgb: dict[int, np.ndarray] = {}  # ids outside the table's range
+
+    def _known(self, ids: np.ndarray) -> np.ndarray:
+        ids = np.asarray(ids, np.int64)
+        inside = (ids >= 0) & (ids < min(len(self._table), self._ARRAY_IDS))
+        known = np.zeros(ids.shape, bool)
+        known[inside] = self._table[ids[inside], 3] > 0
+        for i in np.flatnonzero(~inside).tolist():
+            known[i] = int(ids[i]) in self._rgb
+        return known
 
     def see(self, frame: Frame, tracks: FeatureTracks) -> tuple[np.ndarray, np.ndarray]:
         """Sample the new tracks' colours in `frame`; returns them: (ids (M,), RGB (M, 3) uint8)."""
-        new = [i for i, j in enumerate(tracks.ids.tolist()) if j not in self._rgb]
-        if not new:
+        new = np.flatnonzero(~self._known(tracks.ids))
+        if not new.size:
             return np.zeros(0, np.int64), np.zeros((0, 3), np.uint8)
         image, uv = frame.image, tracks.uv[new]
         h, w = image.shape[:2]
@@ -139,10 +155,37 @@ class TrackColours:
         return ids, np.asarray(rgb, np.uint8)
 
     def add(self, ids: np.ndarray, rgb: np.ndarray) -> None:
-        """Colours sampled by `see` (in the tracker's process, when it runs apart)."""
-        for j, c in zip(np.asarray(ids).tolist(), rgb, strict=True):
-            self._rgb.setdefault(int(j), c)
+        """Colours sampled by `see` (in the tracker's process, when it runs apart); a track keeps its first."""
+        ids, rgb = np.asarray(ids, np.int64).reshape(-1), np.asarray(rgb, np.uint8).reshape(-1, 3)
+        fresh = ~self._known(ids)
+        fresh[fresh] = _first_of_each(ids[fresh])  # a track twice in one call keeps its first colour
+        inside = (ids >= 0) & (ids < self._ARRAY_IDS)
+        put = fresh & inside
+        if put.any():
+            top = int(ids[put].max()) + 1
+            if top > len(self._table):
+                grown = np.zeros((min(max(top, 2 * len(self._table), 1024), self._ARRAY_IDS), 4), np.uint8)
+                grown[: len(self._table)] = self._table
+                self._table = grown
+            self._table[ids[put], :3] = rgb[put]
+            self._table[ids[put], 3] = 1
+        for i in np.flatnonzero(fresh & ~inside).tolist():
+            self._rgb[int(ids[i])] = rgb[i].copy()
 
     def of(self, track_ids: np.ndarray) -> np.ndarray:
         """(M, 3) uint8 RGB of tracks (light grey for tracks never seen in an image)."""
-        return np.array([self._rgb.get(int(j), (200, 200, 200)) for j in track_ids], np.uint8).reshape(-1, 3)
+        ids = np.asarray(track_ids, np.int64).reshape(-1)
+        out = np.full((ids.size, 3), 200, np.uint8)
+        known = self._known(ids)
+        inside = known & (ids >= 0) & (ids < len(self._table))
+        out[inside] = self._table[ids[inside], :3]
+        for i in np.flatnonzero(known & ~inside).tolist():
+            out[i] = self._rgb[int(ids[i])]
+        return out
+
+
+def _first_of_each(ids: np.ndarray) -> np.ndarray:
+    """(N,) True at the first occurrence of each id."""
+    first = np.zeros(ids.size, bool)
+    first[np.unique(ids, return_index=True)[1]] = True
+    return first

@@ -1,0 +1,171 @@
+"""Bounded memory (issue 18): what the estimator forgets as a run goes, and that forgetting changes nothing it
+computes (track views outside every window, lost tracks' segments) or only what it should (the scale's sigma
+chunk by chunk, `backend/scale_chunks.py`)."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+
+import backend.estimator as estimator_module
+from backend.estimator import VioEstimator
+from backend.landmarks import LandmarkBook
+from backend.scale_chunks import ScaleChunks
+from backend.segments import TrackSegments
+from backend.uncertainty import scale_uncertainty
+from frontend.preintegration import ImuPreintegrator
+from tests.backend.test_estimator import synthetic_run
+from tests.backend.test_uncertainty import _two_laps
+from vio.config import ImuConfig, LandmarkConfig, load_config
+
+
+def test_pruned_views_keep_each_runs_start_and_the_first_view():
+    book = LandmarkBook(np.diag([500.0, 500.0, 1.0]), np.eye(4), LandmarkConfig())
+    for k in range(0, 30):
+        ids = [1, 2] + ([3] if k < 10 else []) + ([4] if k < 5 or 12 <= k < 18 else [])
+        book.observe(k, np.array(ids), np.full((len(ids), 2), float(k)))
+    book.tracks[2].admitted = book.tracks[4].admitted = True
+    before = {j: {k: tr.run_start(k) for k in tr.views} for j, tr in book.tracks.items()}
+    dropped = book.prune(15, drop_lost=True)
+    assert dropped == 15 + 15 + 10 + 8
+    assert 3 not in book.tracks  # lost and never a landmark: gone
+    assert set(book.tracks[4].views) == {15, 16, 17} and book.tracks[4].first_view()[0] == 0  # a landmark stays
+    for j, tr in book.tracks.items():
+        assert min(tr.views) == 15
+        assert {k: tr.run_start(k) for k in tr.views} == {k: before[j][k] for k in tr.views}
+    assert book.tracks[1].run_start(29) == 0 and book.tracks[4].run_start(17) == 12
+    book.forget_before(20)  # a recovery: runs start at 20 at the earliest, as without the pruning
+    assert book.tracks[1].run_start(29) == 20
+
+
+def test_segments_of_lost_tracks_are_forgotten():
+    seg = TrackSegments(max_track_keyframes=3)
+    first = seg.landmark_ids(np.array([7, 8]))
+    seg.forget_unseen()
+    seg.landmark_ids(np.array([7]))  # 8 is lost
+    seg.forget_unseen()
+    assert seg.landmark_ids(np.array([7]))[0] == first[0]
+    assert seg.landmark_ids(np.array([7]))[0] != first[0]  # 7 kept its count: its 4th view starts a new segment
+    assert 8 not in seg._segments and 8 not in seg._older
+
+
+@pytest.fixture(scope="module")
+def long_data():
+    return synthetic_run(duration_s=9.0, seed=2)
+
+
+def _unique_ids(data):
+    """The same tracks with a new id each time a point comes back into view (as the tracker numbers them)."""
+    *head, tracks, gt = data
+    current, next_id, seen_before, out = {}, 0, set(), []
+    for tr in tracks:
+        ids = []
+        for j in tr.ids.tolist():
+            if j not in seen_before:
+                current[j], next_id = next_id, next_id + 1
+            ids.append(current[j])
+        seen_before = set(tr.ids.tolist())
+        out.append(replace(tr, ids=np.array(ids, np.int64)))
+    return (*head, out, gt)
+
+
+def _run(data, cfg, unique: bool):
+    cam, imu, cal, t_kf, tracks, _ = data
+    pre = ImuPreintegrator(imu, cal, ImuConfig())
+    est = VioEstimator(cam, imu, pre.between, cfg, unique_track_ids=unique)
+    for t, tr in zip(t_kf, tracks, strict=True):
+        est.add_keyframe(int(t), tr)
+    return est
+
+
+@pytest.mark.parametrize("unique", [False, True])
+def test_pruning_changes_no_estimate(long_data, monkeypatch, unique):
+    """Views older than every window are dropped every few keyframes (and, when track ids are never reused, the
+    lost tracks and their segments): the same states and landmarks to the bit."""
+    data = _unique_ids(long_data) if unique else long_data
+    cfg = load_config(None, [], presets=["fixed_lag"])
+    monkeypatch.setattr(estimator_module, "PRUNE_EVERY_KEYFRAMES", 10**9)
+    kept = _run(data, cfg, unique)
+    monkeypatch.setattr(estimator_module, "PRUNE_EVERY_KEYFRAMES", 7)
+    monkeypatch.setattr(estimator_module, "PRUNE_MARGIN", 0)
+    pruned = _run(data, cfg, unique)
+    views = [sum(len(t.views) for t in e.book.tracks.values()) for e in (kept, pruned)]
+    assert views[1] < 0.7 * views[0], views
+    tracks = [len(e.book.tracks) for e in (kept, pruned)]
+    assert (tracks[1] < tracks[0]) if unique else (tracks[1] == tracks[0]), tracks
+    a, b = kept.states(), pruned.states()
+    assert len(a) == len(b) > 60
+    for sa, sb in zip(a, b, strict=True):
+        assert np.array_equal(sa.world_T_body, sb.world_T_body) and np.array_equal(sa.v_world, sb.v_world)
+    la, lb = kept.landmarks(), pruned.landmarks()
+    assert np.array_equal(la.track_ids, lb.track_ids) and np.array_equal(la.points_world, lb.points_world)
+
+
+class _Window:
+    """A smoother stand-in: keyframes from `live_from` on are in its window."""
+
+    def __init__(self) -> None:
+        self.live_from = 0
+
+    def has(self, key: int) -> bool:
+        return gtsam.Symbol(key).index() >= self.live_from
+
+    def estimate(self) -> gtsam.Values:
+        return gtsam.Values()
+
+
+def test_scale_chunks_as_the_run_goes_match_the_end_of_run_chunks():
+    """Two laps of 30 keyframes in chunks of 20: closed as the window moves on (kf 0-19 once kf 30 has left it,
+    20-39 once kf 50 has), the factors of closed chunks dropped with their preintegrations, and the sigma the
+    same as the end-of-run computation's three chunks of 20 (the weak landmark priors it adds aside)."""
+    graph, values, ks = _two_laps(seed=5)
+    end_of_run = scale_uncertainty(graph, values, ks, chunk_keyframes=20)
+    chunks, window = ScaleChunks(landmark_prior_sigma_m=5.0, compute=True, chunk_keyframes=20), _Window()
+    factors, pims = graph, {k: object() for k in ks}
+    closed = []
+    for n in range(1, len(ks) + 1):
+        window.live_from = max(n - 5, 0)
+        if chunks.due(n):
+            rest = chunks.maybe_close(factors, values, ks[:n], window, pims)
+            if rest is not None:
+                closed.append(n)
+                assert rest.size() < factors.size()
+                factors = rest
+    assert closed == [36, 56] and chunks.start == 40
+    assert min(pims) == 40 and chunks.num_dropped == graph.size() - factors.size()
+    frames = {
+        gtsam.Symbol(key).index()
+        for i in range(factors.size())
+        for key in factors.at(i).keys()
+        if chr(gtsam.Symbol(key).chr()) == "x"
+    }
+    assert min(frames) >= 40
+    streamed = chunks.finish(factors, values, ks, window)
+    assert streamed is not None and len(streamed.pairs) == len(end_of_run.pairs) == 15
+    assert streamed.sigma_rel == pytest.approx(end_of_run.sigma_rel, rel=1e-3)
+
+
+def test_fixed_lag_without_refine_lets_old_factors_go_and_keeps_them_for_refine(long_data, monkeypatch):
+    """Chunks of 20 keyframes in a 2 s lag: the closed chunks' factors are let go (their sigmas computed in forked
+    processes), the run's sigma combines them with the rest's; `--refine` keeps every factor."""
+    monkeypatch.setattr(estimator_module, "ScaleChunks", functools.partial(ScaleChunks, chunk_keyframes=20))
+    lag = "smoother.lag_s=2.0"
+    dropping = _run(long_data, load_config(None, [lag], presets=["fixed_lag"]), False)
+    keeping = _run(long_data, load_config(None, [lag, "run.refine=true"], presets=["fixed_lag"]), False)
+    chunks = dropping._chunks
+    assert chunks is not None and chunks.start >= 40 and keeping._chunks is None
+    assert len(chunks._pending) == chunks.start // 20  # computed in forks, answers not read yet
+    assert dropping.state.all_factors.size() < 0.6 * keeping.state.all_factors.size()
+    assert min(dropping.state.pims) >= chunks.start and min(keeping.state.pims) <= 1
+    dropping.finish(refine=False)
+    keeping.finish(refine=False)
+    ks = sorted(keeping.state.t_ns)
+    cut = scale_uncertainty(keeping.state.all_factors, keeping.state.values, ks, chunk_keyframes=20)
+    s_drop = dropping.stats().scale_sigma_rel
+    assert s_drop is not None and all(r is not None for r in chunks.results) and not chunks._pending
+    assert len(dropping.stats().scale_pairs) == len(cut.pairs)
+    assert 0.8 < s_drop / cut.sigma_rel < 1.25, (s_drop, cut.sigma_rel)
