@@ -185,6 +185,9 @@ class VioEstimator:
         info: dict[str, Any] = {"refined": False}
         st = self.state
         st.sync()
+        if self._chunks is not None:
+            st.all_factors = self._chunks.whole(st.all_factors)  # every factor kept, in one graph again
+            self._chunks.gather()
         if refine and self._chunks is not None and self._chunks.start > 0:
             self._warn("no batch refinement: the factors of finished chunks were let go (smoother.keep_factors)")
             refine = False
@@ -267,7 +270,7 @@ class VioEstimator:
         t0, c0 = time.perf_counter(), time.process_time()
         st = self.state
         if self._chunks is not None:
-            self._chunks.mark(k, st.all_factors.size())
+            st.all_factors = self._chunks.mark(k, st.all_factors)  # the block being filled
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         t_s = st.t_ns[k] * 1e-9
         if self.use_imu:
@@ -310,9 +313,7 @@ class VioEstimator:
         if k % PRUNE_EVERY_KEYFRAMES == 0:
             self._prune(k)
         if self._chunks is not None and self._chunks.due(len(st.t_ns)):
-            rest = self._chunks.maybe_close(st.all_factors, st.values, sorted(st.t_ns), st.smoother, st.pims)
-            if rest is not None:
-                st.all_factors = rest
+            self._chunks.maybe_close(st.all_factors, st.values, sorted(st.t_ns), st.smoother, st.pims)
         ms = (time.perf_counter() - t0) * 1e3
         self._timings_ms.append(ms)
         self._num_variables.append(st.smoother.num_variables())

@@ -8,14 +8,20 @@ while the run goes: once the keyframes of the next chunk and `CHUNK_KEYFRAMES / 
 lag's window (their estimates are final), the chunk's graph gives its sigma and every factor on its keyframes is
 dropped, with the preintegrations that only those factors need. At the end the keyframes not yet in a closed chunk
 (between half a chunk and a chunk and a half, plus the window) are chunked as before. The memory the factors hold
-is then a chunk and a half, not the whole capture.
+is then a chunk and a half, not the whole capture. While the run goes `GraphState.all_factors` is the block being
+filled; `finish` (the estimator's) puts every kept factor back in it.
 
-A chunk's sigma costs about a second of CPU (the elimination of its graph), too long for a keyframe's update, so
-it is computed in a forked copy of the process (copy on write: the graph is not copied or serialised) that sends
-the result back through a pipe, read at the end of the run; the keyframe that closes a chunk only pays for the
-fork and for keeping the factors that remain, whose positions it knows from `mark` (the graph's size at the start
-of each keyframe's update: a factor added at a keyframe's update is on that keyframe or on the few before it).
-Without `os.fork` the sigma is computed in place.
+The factors are kept in blocks, a new one every `BLOCK_KEYFRAMES` keyframes' updates (`mark`): a factor added at
+a keyframe's update is on that keyframe or on earlier ones, so a block whose next block began at or before a
+closed chunk's end holds only factors of closed chunks and goes whole, in one step whatever its size (the factors
+of a later block that reach into a closed chunk stay until their block goes; every chunk's graph leaves out
+factors across its border). A chunk's sigma costs about a second of CPU (the elimination of its graph), too long
+for a keyframe's update, so it is computed in a forked copy of the process (copy on write: the graph is not
+copied or serialised) that sends the result back through a pipe, read at the end of the run; the keyframe that
+closes a chunk pays for the fork and little else. Freeing the factors is not free either (about 2 us a factor), so
+the blocks let go are freed one per keyframe's update. Measured on the 10-minute orbit, the first two closes took
+13 and 21 ms (the fork 6 ms); 99-122 ms with the blocks freed at once, and 135-143 ms before the blocks, when the
+factors that remain were copied one by one. Without `os.fork` the sigma is computed in place.
 
 What differs from the end-of-run computation: the chunk borders (chunks of exactly `CHUNK_KEYFRAMES` first, where
 the end-of-run split makes equal ones), and the landmarks' weak priors, which are dropped with the chunk and added
@@ -40,96 +46,100 @@ from backend.uncertainty import CHUNK_KEYFRAMES, ScaleUncertainty, _chunk_graphs
 log = logging.getLogger(__name__)
 
 _CHILD_TIMEOUT_S = 300.0  # a chunk's fork that has not answered by the end of the run after this is stopped
-_LOOK_BACK = 100  # keyframes: a factor added at a keyframe's update is on it or on keyframes at most this far back
+BLOCK_KEYFRAMES = 25  # keyframes' updates whose factors share a block (module docstring)
 
 
 class ScaleChunks:
     """Closes chunks of final keyframes as the run goes (module docstring); `finish` gives the run's sigma."""
 
-    def __init__(self, landmark_prior_sigma_m: float, compute: bool, chunk_keyframes: int = CHUNK_KEYFRAMES) -> None:
+    def __init__(
+        self,
+        landmark_prior_sigma_m: float,
+        compute: bool,
+        chunk_keyframes: int = CHUNK_KEYFRAMES,
+        block_keyframes: int = BLOCK_KEYFRAMES,
+    ) -> None:
         self.prior_sigma_m = float(landmark_prior_sigma_m)
         self.compute = compute  # False: the factors are dropped and no sigma is computed (scale_uncertainty off)
         self.chunk = int(chunk_keyframes)
+        self.block = int(block_keyframes)
         self.start = 0  # position, in the sorted keyframes, of the first keyframe not in a closed chunk
         self.results: list[ScaleUncertainty | None] = []
         self._pending: list[tuple[int, int, int]] = []  # (place in results, pid, pipe's read end): in a fork
-        self._marks: dict[int, int] = {}  # keyframe -> the factor graph's size when its update began
+        self._blocks: list[tuple[int, gtsam.NonlinearFactorGraph]] = []  # (first keyframe added, factors): full
+        self._first = -1  # the first keyframe whose update adds to the current block (-1: the start's factors)
+        self._updates = 0  # keyframes' updates in the current block
+        self._gone: list[gtsam.NonlinearFactorGraph] = []  # blocks let go, freed one per keyframe (`mark`)
         self.num_dropped = 0  # factors let go
         self.fork = hasattr(os, "fork")
 
-    def mark(self, k: int, num_factors: int) -> None:
-        """Keyframe k's update begins with `num_factors` factors in the graph."""
-        self._marks[k] = num_factors
+    def mark(self, k: int, current: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
+        """Keyframe k's update begins; `current` holds the factors added since the last block began. Returns the
+        graph that k's factors go into: `current`, or a new one when a block is full (`current` is then kept)."""
+        self._updates += 1
+        if self._gone:
+            self._gone.pop()  # freeing a block's factors takes a few ms: one block per keyframe
+        if self._updates <= self.block:
+            return current
+        self._blocks.append((self._first, current))
+        self._first, self._updates = k, 1
+        return gtsam.NonlinearFactorGraph()
+
+    def whole(self, current: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
+        """Every factor kept: the full blocks and `current`, in the order they were added."""
+        if not self._blocks:
+            return current
+        graph = gtsam.NonlinearFactorGraph()
+        for _, block in self._blocks:
+            graph.push_back(block)
+        graph.push_back(current)
+        return graph
+
+    def gather(self) -> None:
+        """At the end of the run, once `whole` has replaced the caller's block: one block again (so a second
+        `whole` does not count the factors twice)."""
+        self._blocks, self._first, self._updates = [], -1, 0
 
     def due(self, num_keyframes: int) -> bool:
         """Enough keyframes for `maybe_close` to look (cheap; the smoother decides when they left it)."""
         return num_keyframes > self.start + self.chunk + self.chunk // 2
 
     def maybe_close(
-        self,
-        factors: gtsam.NonlinearFactorGraph,
-        values: gtsam.Values,
-        keyframes: list[int],
-        smoother: Smoother,
+        self, current: gtsam.NonlinearFactorGraph, values: gtsam.Values, keyframes: list[int], smoother: Smoother,
         pims: dict[int, object],
-    ) -> gtsam.NonlinearFactorGraph | None:
-        """When the next chunk can be closed (see the module docstring): its sigma is kept and the factors that
-        remain are returned (the caller keeps them in place of `factors`); else None. `keyframes`: every keyframe
-        so far in order; `values`: the latest value of every variable (final for keyframes out of the window)."""
+    ) -> bool:
+        """When the next chunk can be closed (see the module docstring): its sigma is kept, the blocks of closed
+        chunks and their preintegrations go, and True is returned. `current`: the block being filled;
+        `keyframes`: every keyframe so far in order; `values`: the latest value of every variable (final for
+        keyframes out of the window)."""
         last = self.start + self.chunk + self.chunk // 2
         if not self.due(len(keyframes)) or smoother.has(X(keyframes[last])):
-            return None
+            return False
         chunk = [k for k in keyframes[self.start : self.start + self.chunk] if values.exists(X(k))]
         end = keyframes[self.start + self.chunk]  # the first keyframe after the chunk
         if self.compute and len(chunk) >= 4:
-            self._sigma(factors, values, smoother, chunk, f"chunk {self.start // self.chunk + 1}")
-        rest = self._after(factors, end)
-        self.num_dropped += factors.size() - rest.size()
+            self._sigma(current, values, smoother, chunk, f"chunk {self.start // self.chunk + 1}")
+        firsts = [first for first, _ in self._blocks[1:]] + [self._first]
+        gone = sum(1 for nxt in firsts if nxt <= end)  # blocks whose next block began by `end`
+        self.num_dropped += sum(block.size() for _, block in self._blocks[:gone])
+        self._gone += [block for _, block in self._blocks[:gone]]
+        del self._blocks[:gone]
         for k in [k for k in pims if k < end]:
             del pims[k]
-        for k in [k for k in self._marks if k < end]:
-            del self._marks[k]  # (the marks from `end` on were moved by `_after`)
         self.start += self.chunk
-        log.debug("scale chunk closed before keyframe %d: %d factors kept", end, rest.size())
-        return rest
-
-    def _after(self, factors: gtsam.NonlinearFactorGraph, end: int) -> gtsam.NonlinearFactorGraph:
-        """The factors on keyframes from `end` on only (landmark priors go: module docstring), with the marks moved
-        to their places in it. A factor added before keyframe `end`'s update is on earlier keyframes; of those
-        added after it, only the ones added within `_LOOK_BACK` keyframes can reach before `end`, and only they are
-        looked at."""
-        first = self._marks.get(end, 0)
-        check_until = self._marks.get(end + _LOOK_BACK, factors.size()) if end in self._marks else factors.size()
-        moved = sorted((m, k) for k, m in self._marks.items() if k >= end)
-        self._marks = {k: m for k, m in self._marks.items() if k < end}
-        rest, n_moved = gtsam.NonlinearFactorGraph(), 0
-        for i in range(first, factors.size()):
-            while n_moved < len(moved) and moved[n_moved][0] <= i:
-                self._marks[moved[n_moved][1]] = rest.size()
-                n_moved += 1
-            factor = factors.at(i)
-            if factor is None:
-                continue
-            if i < check_until:
-                syms = [gtsam.Symbol(key) for key in factor.keys()]
-                frames = [sym.index() for sym in syms if chr(sym.chr()) != "l"]
-                if not frames or min(frames) < end:
-                    continue
-            rest.add(factor)
-        for _, k in moved[n_moved:]:
-            self._marks[k] = rest.size()
-        return rest
+        log.debug("scale chunk closed before keyframe %d: %d blocks let go", end, gone)
+        return True
 
     def _sigma(
-        self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, smoother: Smoother, chunk: list[int], name: str
+        self, current: gtsam.NonlinearFactorGraph, values: gtsam.Values, smoother: Smoother, chunk: list[int], name: str
     ) -> None:
         """The chunk's sigma into `results`, computed in a forked process when possible (module docstring)."""
         pin = self.start > 0
 
         def compute() -> ScaleUncertainty | None:
-            current = self._current(values, smoother)
-            (sub,) = _chunk_graphs(factors, current, [chunk], pin, self.prior_sigma_m)
-            return _sub_scale(sub, current, chunk, 5, name)
+            latest = self._current(values, smoother)
+            (sub,) = _chunk_graphs(self.whole(current), latest, [chunk], pin, self.prior_sigma_m)
+            return _sub_scale(sub, latest, chunk, 5, name)
 
         if self.fork:
             try:
@@ -182,10 +192,12 @@ class ScaleChunks:
         return merged
 
     def finish(
-        self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, keyframes: list[int], smoother: Smoother
+        self, current: gtsam.NonlinearFactorGraph, values: gtsam.Values, keyframes: list[int], smoother: Smoother
     ) -> ScaleUncertainty | None:
-        """The run's sigma: the closed chunks and the keyframes after them (chunked as `scale_uncertainty` does)."""
+        """The run's sigma: the closed chunks and the keyframes after them (chunked as `scale_uncertainty` does);
+        `current`: the block being filled."""
         self._collect()
+        factors = self.whole(current)
         if not self.results and self.start == 0:
             return scale_uncertainty(factors, values, keyframes, chunk_keyframes=self.chunk)
         tail = scale_uncertainty(

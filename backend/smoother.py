@@ -101,6 +101,7 @@ class Smoother:
         self._keys.difference_update(leaving)
         for key in leaving:
             del self._stamps[key]
+            self._getter_of.pop(key, None)
         return retired
 
     def _block(self, t_s: float) -> float:

@@ -119,32 +119,39 @@ class _Window:
 
 
 def test_scale_chunks_as_the_run_goes_match_the_end_of_run_chunks():
-    """Two laps of 30 keyframes in chunks of 20: closed as the window moves on (kf 0-19 once kf 30 has left it,
-    20-39 once kf 50 has), the factors of closed chunks dropped with their preintegrations, and the sigma the
+    """Two laps of 30 keyframes in chunks of 20, factors in blocks of 5 keyframes: closed as the window moves on
+    (kf 0-19 once kf 30 has left it, 20-39 once kf 50 has), the blocks of closed chunks dropped with their
+    preintegrations, and the sigma the
     same as the end-of-run computation's three chunks of 20 (the weak landmark priors it adds aside)."""
     graph, values, ks = _two_laps(seed=5)
     end_of_run = scale_uncertainty(graph, values, ks, chunk_keyframes=20)
-    chunks, window = ScaleChunks(landmark_prior_sigma_m=5.0, compute=True, chunk_keyframes=20), _Window()
-    factors, pims = graph, {k: object() for k in ks}
-    closed = []
-    for n in range(1, len(ks) + 1):
+    chunks = ScaleChunks(landmark_prior_sigma_m=5.0, compute=True, chunk_keyframes=20, block_keyframes=5)
+    window = _Window()
+    added_at: dict[int, list] = {}  # keyframe -> the factors its update adds (on it and earlier keyframes)
+    for i in range(graph.size()):
+        frames = [gtsam.Symbol(key).index() for key in graph.at(i).keys() if chr(gtsam.Symbol(key).chr()) != "l"]
+        added_at.setdefault(max(frames, default=-1), []).append(graph.at(i))
+    current, pims, closed = gtsam.NonlinearFactorGraph(), {k: object() for k in ks}, []
+    for f in added_at.get(-1, []):
+        current.add(f)
+    for n, k in enumerate(ks, start=1):
+        current = chunks.mark(k, current)
+        for f in added_at.get(k, []):
+            current.add(f)
         window.live_from = max(n - 5, 0)
-        if chunks.due(n):
-            rest = chunks.maybe_close(factors, values, ks[:n], window, pims)
-            if rest is not None:
-                closed.append(n)
-                assert rest.size() < factors.size()
-                factors = rest
+        if chunks.due(n) and chunks.maybe_close(current, values, ks[:n], window, pims):
+            closed.append(n)
     assert closed == [36, 56] and chunks.start == 40
-    assert min(pims) == 40 and chunks.num_dropped == graph.size() - factors.size()
+    factors = chunks.whole(current)
+    assert min(pims) == 40 and chunks.num_dropped == graph.size() - factors.size() > 0
     frames = {
         gtsam.Symbol(key).index()
         for i in range(factors.size())
         for key in factors.at(i).keys()
         if chr(gtsam.Symbol(key).chr()) == "x"
     }
-    assert min(frames) >= 40
-    streamed = chunks.finish(factors, values, ks, window)
+    assert min(frames) == 39  # whole blocks go: the one that begins at keyframe 40 stays, with the IMU factor 39-40
+    streamed = chunks.finish(current, values, ks, window)
     assert streamed is not None and len(streamed.pairs) == len(end_of_run.pairs) == 15
     assert streamed.sigma_rel == pytest.approx(end_of_run.sigma_rel, rel=1e-3)
 
@@ -159,10 +166,10 @@ def test_fixed_lag_without_refine_lets_old_factors_go_and_keeps_them_for_refine(
     chunks = dropping._chunks
     assert chunks is not None and chunks.start >= 40 and keeping._chunks is None
     assert len(chunks._pending) == chunks.start // 20  # computed in forks, answers not read yet
-    assert dropping.state.all_factors.size() < 0.6 * keeping.state.all_factors.size()
     assert min(dropping.state.pims) >= chunks.start and min(keeping.state.pims) <= 1
     dropping.finish(refine=False)
     keeping.finish(refine=False)
+    assert dropping.state.all_factors.size() < 0.6 * keeping.state.all_factors.size()
     ks = sorted(keeping.state.t_ns)
     cut = scale_uncertainty(keeping.state.all_factors, keeping.state.values, ks, chunk_keyframes=20)
     s_drop = dropping.stats().scale_sigma_rel
