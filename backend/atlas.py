@@ -136,7 +136,7 @@ class LandmarkAtlas:
         return idx[~surely_old]
 
     def _candidates(
-        self, world_T_body: np.ndarray, exclude: set[int], alive: Callable[[int], bool]
+        self, world_T_body: np.ndarray, exclude: set[int], alive: Callable[[np.ndarray], np.ndarray]
     ) -> tuple[list[int], np.ndarray, np.ndarray]:
         """Landmarks visible from world_T_body with a comparable snapshot: ids, (C, 2) pixels, (C, 32) descriptors."""
         empty = [], np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
@@ -166,8 +166,10 @@ class LandmarkAtlas:
         first = np.ones(len(slots), bool)
         first[1:] = srow[slots][1:] != srow[slots][:-1]
         slots = slots[first]
-        keep = [i for i, s in enumerate(slots.tolist()) if (j := int(self._ids[srow[s]])) not in exclude and alive(j)]
-        if not keep:
+        ids = self._ids[srow[slots]]
+        keep = ~np.isin(ids, np.fromiter(exclude, np.int64, len(exclude)))
+        keep[keep] = alive(ids[keep])
+        if not keep.any():
             return empty
         slots = slots[keep]
         return self._ids[srow[slots]].tolist(), uv[srow[slots]], self._snap_desc[slots]
@@ -179,11 +181,11 @@ class LandmarkAtlas:
         desc: np.ndarray,
         ok: np.ndarray,
         exclude: set[int],
-        alive: Callable[[int], bool] = lambda j: True,
+        alive: Callable[[np.ndarray], np.ndarray] = lambda ids: np.ones(len(ids), bool),
     ) -> dict[int, int]:
         """Re-identify new tracks (rows of uv_px (N, 2) undistorted px, desc (N, 32), ok (N,)) seen from the
-        predicted pose world_T_body; landmarks in `exclude` (seen by their own track now) or not `alive(j)` are not
-        candidates. Returns {row: landmark id}, one row per landmark, best (smallest distance) first."""
+        predicted pose world_T_body; landmarks in `exclude` (seen by their own track now) or not alive (`alive(ids)`:
+        a mask) are not candidates. Returns {row: landmark id}, one row per landmark, best (smallest distance) first."""
         ids, proj, cand_desc = self._candidates(world_T_body, exclude, alive)
         if not ids or not len(uv_px):
             return {}

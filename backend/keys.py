@@ -7,10 +7,11 @@ landmarks when it drifts off its first one (backend/segments.py). The encoding l
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-__all__ = ["B", "L", "V", "X", "SEGMENT_SHIFT", "landmark_id", "segment_of", "track_of"]
+__all__ = ["B", "L", "V", "X", "SEGMENT_SHIFT", "landmark_id", "landmarks_in", "segment_of", "track_of"]
 
 SEGMENT_SHIFT = 40
 _TRACK_MASK = (1 << SEGMENT_SHIFT) - 1
@@ -31,3 +32,9 @@ def track_of(landmark_ids: int | np.ndarray) -> int | np.ndarray:
 def segment_of(landmark_id: int) -> int:
     """The segment number of a landmark id."""
     return int(landmark_id) >> SEGMENT_SHIFT
+
+
+def landmarks_in(keys: list[int]) -> list[int]:
+    """The landmark ids j of the `L(j)` among `keys`."""
+    syms = [gtsam.Symbol(key) for key in keys]
+    return [int(sym.index()) for sym in syms if chr(sym.chr()) == "l"]

@@ -22,7 +22,7 @@ import numpy as np
 
 from backend.atlas import LandmarkAtlas, gravity_angles_deg
 from backend.graph_state import GraphState
-from backend.keys import L, V, X, track_of
+from backend.keys import L, V, X, landmarks_in, track_of
 from backend.landmarks import LandmarkBook
 from backend.smoother import SolverFailure
 from vio.config import ReidentificationConfig
@@ -87,8 +87,13 @@ class Reidentification:
             return ids
         max_age = self.cfg.max_age_keyframes
 
-        def alive(j: int) -> bool:
-            return (st.smoother.has(L(j)) or j in st.retired) and (max_age <= 0 or k - st.last_obs.get(j, k) <= max_age)
+        def alive(js: np.ndarray) -> np.ndarray:
+            has, retired, last = st.smoother.has, st.retired, st.last_obs
+            return np.fromiter(
+                ((j in retired or has(L(j))) and (max_age <= 0 or k - last.get(j, k) <= max_age) for j in js.tolist()),
+                bool,
+                len(js),
+            )
 
         found = self.atlas.match(world_T_body, uv[new], desc[new], ok[new], set(ids.tolist()), alive)
         out = ids.copy()
@@ -118,8 +123,9 @@ class Reidentification:
             est = self.state.smoother.estimate()
         except SolverFailure:
             return
-        for j in list(self.atlas.rows):
-            if est.exists(L(j)):
+        rows = self.atlas.rows
+        for j in landmarks_in(est.keys()):  # the smoother's only: the atlas' others have left it, their values final
+            if j in rows:
                 self.atlas.set_position(j, est.atPoint3(L(j)))
 
     def route(self, graph: gtsam.NonlinearFactorGraph, j: int, k: int) -> gtsam.NonlinearFactorGraph:

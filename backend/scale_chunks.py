@@ -105,7 +105,11 @@ class ScaleChunks:
         return num_keyframes > self.start + self.chunk + self.chunk // 2
 
     def maybe_close(
-        self, current: gtsam.NonlinearFactorGraph, values: gtsam.Values, keyframes: list[int], smoother: Smoother,
+        self,
+        current: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        keyframes: list[int],
+        smoother: Smoother,
         pims: dict[int, object],
     ) -> bool:
         """When the next chunk can be closed (see the module docstring): its sigma is kept, the blocks of closed

@@ -109,7 +109,8 @@ def test_atlas_re_identifies_new_tracks_at_the_landmark_projections():
     assert found == {i: 100 + i for i in range(10)}
     # landmarks seen now by their own tracks, or no longer in the solver, are never candidates
     assert 100 not in atlas.match(pose, uv, noisy, np.ones(10, bool), exclude={100}).values()
-    assert atlas.match(pose, uv, noisy, np.ones(10, bool), exclude=set(), alive=lambda j: False) == {}
+    dead = atlas.match(pose, uv, noisy, np.ones(10, bool), exclude=set(), alive=lambda ids: np.zeros(len(ids), bool))
+    assert dead == {}
 
 
 def test_atlas_rejects_far_pixels_wrong_descriptors_and_new_viewpoints():
