@@ -93,11 +93,14 @@ class LandmarkBook:
         self.body_T_cam = np.asarray(body_T_cam, float)
         self.cfg = cfg
         self.tracks: dict[int, Track] = {}
+        self._viewed: set[int] = set()  # tracks given views since `prune` last left them with none
 
     def observe(self, k: int, ids: np.ndarray, uv_px: np.ndarray) -> None:
         """Record keyframe k's observations (undistorted pixels)."""
-        for j, uv in zip(ids.tolist(), uv_px, strict=True):
+        js = ids.tolist()
+        for j, uv in zip(js, uv_px, strict=True):
             self.tracks.setdefault(int(j), Track()).views[k] = np.asarray(uv, float)
+        self._viewed.update(js)
 
     def normalized(self, uv_px: np.ndarray) -> np.ndarray:
         uv_px = np.atleast_2d(uv_px)
@@ -169,9 +172,13 @@ class LandmarkBook:
         became landmarks. An admitted track stays (its landmark can be seen again), its first view kept apart.
         Returns the number of views dropped. What the estimator computes is unchanged: `run_start` answers as
         before (`origin`), and no decision counts views outside the window."""
-        dropped, gone = 0, []
-        for j, tr in self.tracks.items():
-            if not tr.views or min(tr.views) >= before:
+        dropped, gone, emptied = 0, [], []
+        for j in self._viewed:  # not every track: the landmarks of a long run keep tracks with no views left
+            tr = self.tracks.get(j)
+            if tr is None or not tr.views:
+                emptied.append(j)
+                continue
+            if min(tr.views) >= before:
                 continue
             if tr.admitted and tr.first is None:
                 tr.first = tr.first_view()
@@ -182,8 +189,11 @@ class LandmarkBook:
                     tr.origin = (k_first, tr.run_start(k_first))
             dropped += len(tr.views) - len(kept)
             tr.views = kept  # a new dict: one emptied by deletions keeps its table
-            if not kept and not tr.admitted and drop_lost:
-                gone.append(j)
+            if not kept:
+                emptied.append(j)
+                if not tr.admitted and drop_lost:
+                    gone.append(j)
+        self._viewed.difference_update(emptied)
         for j in gone:
             del self.tracks[j]
         return dropped
