@@ -152,7 +152,7 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "cpu_s": result.summary["cpu_time_s"],
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "end_rss_peak_mib": float(end.max()) if end.size else float("nan"),  # from the last frame read to the end
-        "children_rss_peak_mib": max((m for _, m in sampler.children), default=0.0),  # the tracker's process
+        "children_rss_peak_mib": max((m for _, m in sampler.children), default=0.0),  # the tracker, a scale chunk fork
         "load_average_start": load_start[0],
         "load_average_end": os.getloadavg()[0],
         "keyframes": int(steps.size),
@@ -204,7 +204,7 @@ def plot(record: dict[str, Any], path: Path, label: str) -> None:
         ax2.plot(*np.asarray(record["end_memory"]).T, "r.", ms=3, label="after the last frame (final solve, files)")
     children = np.asarray(record.get("children_memory", [])).reshape(-1, 2)
     if children.size and children[:, 1].max() > 0:
-        ax2.plot(children[:, 0], children[:, 1], label="the tracker's process")
+        ax2.plot(children[:, 0], children[:, 1], label="child processes: the tracker, a scale chunk's fork")
     ax2.legend(loc="upper left")
     ax2.set_ylabel("resident memory, MiB")
     ax2.set_xlabel("capture time, s")
@@ -267,8 +267,8 @@ def main(argv: list[str] | None = None) -> int:
     ate = f", ATE {1e3 * record['ate_se3_m']:.2f} mm" if "ate_se3_m" in record else ""
     print(
         f"wall {record['wall_s']:.0f} s ({record['realtime_factor']:.2f}x real time), peak RSS "
-        f"{record['peak_rss_mib']:.0f} MiB (after the last frame {record['end_rss_peak_mib']:.0f}; the tracker's "
-        f"process {record['children_rss_peak_mib']:.0f}), load "
+        f"{record['peak_rss_mib']:.0f} MiB (after the last frame {record['end_rss_peak_mib']:.0f}; child "
+        f"processes {record['children_rss_peak_mib']:.0f}), load "
         f"{record['load_average_start']:.1f}-{record['load_average_end']:.1f}{ate}"
     )
     return 0
