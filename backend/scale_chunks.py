@@ -46,7 +46,6 @@ from backend.uncertainty import CHUNK_KEYFRAMES, ScaleUncertainty, _chunk_graphs
 log = logging.getLogger(__name__)
 
 _CHILD_TIMEOUT_S = 300.0  # a chunk's fork that has not answered by the end of the run after this is stopped
-_CHILD_NICE = 19  # a chunk's fork runs on the cores' idle time
 BLOCK_KEYFRAMES = 25  # keyframes' updates whose factors share a block (module docstring)
 
 
@@ -157,7 +156,6 @@ class ScaleChunks:
                     code = 0
                     try:
                         os.close(read)
-                        os.nice(_CHILD_NICE)  # the run's own processes first (module docstring)
                         with os.fdopen(write, "wb") as pipe:
                             pickle.dump(compute(), pipe)
                     except BaseException:  # noqa: BLE001 - a child must never return into the parent's code
