@@ -26,6 +26,7 @@ MAX_SNAPSHOTS = 6
 SNAPSHOT_SPACING_DEG = 10.0
 MAX_DEPTH_RATIO = 1.25  # one-level descriptors: compare views within this range of distances only
 _MIN_DEPTH_M = 0.05
+_COMPACT_MIN = 1000  # forgotten rows before `forget` compacts
 _EXACT_MARGIN = 1e-9  # m and cosine: `remember`'s all-at-once pass skips only views this far from a threshold
 
 
@@ -62,6 +63,8 @@ class LandmarkAtlas:
         self._snap_dir = np.zeros((0, 3))
         self._snap_depth = np.zeros(0)
         self._num_snaps = 0
+        self._num_rows = 0  # rows in use, forgotten ones included until `_compact`
+        self._num_forgotten = 0
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -72,13 +75,43 @@ class LandmarkAtlas:
     def set_position(self, j: int, p_world: np.ndarray) -> None:
         row = self.rows.get(j)
         if row is None:
-            row = self.rows[j] = len(self.rows)
+            row = self.rows[j] = self._num_rows
+            self._num_rows += 1
             if row >= len(self._ids):
                 self._ids = _grow(self._ids, row + 1)
                 self._pos = _grow(self._pos, row + 1)
             self._ids[row] = j
             self._slots.append([])
         self._pos[row] = p_world
+
+    def position(self, j: int) -> np.ndarray:
+        return self._pos[self.rows[j]]
+
+    def forget(self, j: int) -> None:
+        """Landmark j is no longer a candidate (a duplicate of an older one): its row is dead (no position, never
+        visible) until the rows are compacted, once more than half of them are dead."""
+        row = self.rows.pop(j, None)
+        if row is None:
+            return
+        self._ids[row], self._pos[row] = -1, np.nan
+        self._num_forgotten += 1
+        if self._num_forgotten >= _COMPACT_MIN and 2 * self._num_forgotten > self._num_rows:
+            self._compact()
+
+    def _compact(self) -> None:
+        """Drop the dead rows and their snapshots (the order of what is kept stays)."""
+        live = [r for r in range(self._num_rows) if self._ids[r] >= 0]
+        kept = [slot for r in live for slot in self._slots[r]]
+        slot_to = {slot: i for i, slot in enumerate(kept)}
+        row_to = np.full(self._num_rows, -1, np.int64)
+        row_to[live] = np.arange(len(live))
+        idx = np.asarray(kept, np.int64)
+        self._ids, self._pos = self._ids[live], self._pos[live]
+        self._snap_row, self._snap_desc = row_to[self._snap_row[idx]], self._snap_desc[idx]
+        self._snap_dir, self._snap_depth = self._snap_dir[idx], self._snap_depth[idx]
+        self._slots = [[slot_to[slot] for slot in self._slots[r]] for r in live]
+        self._num_rows, self._num_snaps, self._num_forgotten = len(live), len(kept), 0
+        self.rows = {int(j): i for i, j in enumerate(self._ids.tolist())}
 
     def _new_slot(self, row: int) -> int:
         slots = self._slots[row]
@@ -140,7 +173,7 @@ class LandmarkAtlas:
     ) -> tuple[list[int], np.ndarray, np.ndarray]:
         """Landmarks visible from world_T_body with a comparable snapshot: ids, (C, 2) pixels, (C, 32) descriptors."""
         empty = [], np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
-        n, m = len(self.rows), self._num_snaps
+        n, m = self._num_rows, self._num_snaps
         if not n or not m:
             return empty
         world_T_cam = world_T_body @ self.body_T_cam

@@ -49,6 +49,9 @@ class Reidentification:
         self.num_reidentified = 0
         self.num_loop_flushes = 0
         self.events: list[ReidentificationEvent] = []
+        self._grid: dict[tuple[int, int, int], list[int]] = {}  # cells of merge_radius_m -> retired atlas landmarks
+        self._cell_of: dict[int, tuple[int, int, int]] = {}
+        self.num_merged = 0  # retired landmarks left out of the atlas as duplicates
 
     def apply_aliases(self, ids: np.ndarray) -> np.ndarray:
         return np.array([self._alias.get(j, j) for j in ids.tolist()], np.int64)
@@ -62,9 +65,31 @@ class Reidentification:
         self.atlas.set_position(j, p_world)
 
     def on_retired(self, j: int, p_world: np.ndarray) -> None:
-        """Landmark j left the fixed-lag window at p_world (backend/fixed_lag.py): it stays a candidate there."""
-        if j in self.atlas.rows:
-            self.atlas.set_position(j, p_world)
+        """Landmark j left the fixed-lag window at p_world (backend/fixed_lag.py): it stays a candidate there,
+        unless it duplicates an older one (`merge_radius_m`: the atlas of a long capture stays the scene's size)."""
+        if j not in self.atlas.rows:
+            return
+        self.atlas.set_position(j, p_world)
+        r = self.cfg.merge_radius_m
+        if r <= 0:
+            return
+        cell = tuple(np.floor(np.asarray(p_world, float) / r).astype(np.int64).tolist())
+        old = self._cell_of.pop(j, None)
+        if old is not None:  # retired before, seen again, retired again: filed where it is now, and kept
+            self._grid[old].remove(j)
+            self._grid.setdefault(cell, []).append(j)
+            self._cell_of[j] = cell
+            return
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    for i in self._grid.get((cell[0] + dx, cell[1] + dy, cell[2] + dz), ()):
+                        if i in self.atlas.rows and np.linalg.norm(self.atlas.position(i) - p_world) <= r:
+                            self.atlas.forget(j)
+                            self.num_merged += 1
+                            return
+        self._grid.setdefault(cell, []).append(j)
+        self._cell_of[j] = cell
 
     def reidentify(
         self, prev: int, k: int, ids: np.ndarray, uv: np.ndarray, uv_distorted: np.ndarray, describe: Describe

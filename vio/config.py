@@ -175,6 +175,9 @@ class ReidentificationConfig:
     max_age_keyframes: int = 0  # only landmarks observed within this many keyframes are candidates (0: all)
     max_loops: int = 5  # old landmarks re-identified per flush period at most (bounds the solver's cost)
     flush_keyframes: int = 10  # batched re-observations of old landmarks enter the smoother this often
+    # fixed lag: a landmark that leaves the window within this of an older retired one leaves the atlas (it stays in
+    # the map): the atlas of a long capture of one scene stops growing (0: off; backend/reidentification.py)
+    merge_radius_m: float = 0.0
 
 
 @dataclass(frozen=True)

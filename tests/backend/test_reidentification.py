@@ -6,9 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
+import backend.atlas as atlas_module
 from backend.atlas import LandmarkAtlas, gravity_angles_deg
+from backend.landmarks import LandmarkBook
+from backend.reidentification import Reidentification
 from frontend.descriptors import KeyframeDescriber
-from vio.config import ReidentificationConfig
+from vio.config import LandmarkConfig, ReidentificationConfig
 from vio.descriptors import hamming
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
@@ -148,3 +151,41 @@ def test_atlas_keeps_a_few_snapshots_from_distinct_viewpoints():
         c = (np.sin(np.radians(12.0 * i)) * 1.0, -np.cos(np.radians(12.0 * i)) * 1.0, 0.0)
         atlas.remember(_look(12.0 * i, c=c), np.array([100]), desc[:1], np.ones(1, bool))
     assert atlas.num_snapshots(100) == 6  # bounded
+
+
+def test_forgotten_landmarks_are_no_candidates_and_compaction_keeps_the_others(monkeypatch):
+    monkeypatch.setattr(atlas_module, "_COMPACT_MIN", 5)
+    atlas, pts, desc = _atlas()
+    pose = _look(5.0, c=(0.05, -1.0, 0.0))
+    uv = _pixels(pose, pts) + 1.5
+    before = atlas.match(pose, uv, desc, np.ones(40, bool), exclude=set())
+    assert len(before) > 30
+    for j in range(100, 125):  # the 21st forgotten row makes more than half of the rows dead: compacted
+        atlas.forget(j)
+    assert len(atlas) == 15 and atlas._num_rows == 19 and atlas._num_forgotten == 4
+    after = atlas.match(pose, uv, desc, np.ones(40, bool), exclude=set())
+    assert after == {row: j for row, j in before.items() if j >= 125}
+    assert atlas.num_snapshots(130) == 1 and atlas.num_snapshots(110) == 0
+    atlas.set_position(200, pts[0])  # a new landmark after the compaction gets a row of its own
+    assert atlas.rows[200] == 19 and np.array_equal(atlas.position(200), pts[0])
+
+
+def test_a_retiring_duplicate_of_an_older_landmark_leaves_the_atlas():
+    book = LandmarkBook(K, np.eye(4), LandmarkConfig())
+    cfg = ReidentificationConfig(merge_radius_m=0.005)
+    reid = Reidentification(cfg, True, book, None, np.eye(4))  # on_admit / on_retired use no graph state
+    p = np.array([0.3, 1.2, 0.1])
+    for j, q in [(1, p), (2, p + [0.004, 0.0, 0.0]), (3, p + [0.0, 0.006, 0.0]), (4, p + [0.0, 0.0, -0.003])]:
+        reid.on_admit(j, q)
+    for j, q in [(1, p), (2, p + [0.004, 0.0, 0.0]), (3, p + [0.0, 0.006, 0.0])]:
+        reid.on_retired(j, q)
+    assert set(reid.atlas.rows) == {1, 3, 4} and reid.num_merged == 1  # 2 was 4 mm from 1; 3 is 6 mm away
+    reid.on_retired(1, p + [0.0, 0.002, 0.0])  # seen again and retired again, filed where it is now
+    reid.on_retired(4, p + [0.0, 0.0, -0.003])
+    assert set(reid.atlas.rows) == {1, 3} and reid.num_merged == 2
+    off = Reidentification(ReidentificationConfig(), True, book, None, np.eye(4))
+    off.on_admit(1, p)
+    off.on_admit(2, p)
+    off.on_retired(1, p)
+    off.on_retired(2, p)
+    assert set(off.atlas.rows) == {1, 2}  # merge_radius_m 0: off
