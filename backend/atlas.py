@@ -26,7 +26,6 @@ MAX_SNAPSHOTS = 6
 SNAPSHOT_SPACING_DEG = 10.0
 MAX_DEPTH_RATIO = 1.25  # one-level descriptors: compare views within this range of distances only
 _MIN_DEPTH_M = 0.05
-_COMPACT_MIN = 1000  # forgotten rows before `forget` compacts
 _EXACT_MARGIN = 1e-9  # m and cosine: `remember`'s all-at-once pass skips only views this far from a threshold
 
 
@@ -63,8 +62,9 @@ class LandmarkAtlas:
         self._snap_dir = np.zeros((0, 3))
         self._snap_depth = np.zeros(0)
         self._num_snaps = 0
-        self._num_rows = 0  # rows in use, forgotten ones included until `_compact`
-        self._num_forgotten = 0
+        self._num_rows = 0  # rows used so far, forgotten ones included (`forget`)
+        self._free_rows: list[int] = []  # forgotten rows, taken again by new landmarks
+        self._free_slots: list[int] = []  # forgotten landmarks' snapshot slots, taken again by new snapshots
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -75,48 +75,40 @@ class LandmarkAtlas:
     def set_position(self, j: int, p_world: np.ndarray) -> None:
         row = self.rows.get(j)
         if row is None:
-            row = self.rows[j] = self._num_rows
-            self._num_rows += 1
-            if row >= len(self._ids):
-                self._ids = _grow(self._ids, row + 1)
-                self._pos = _grow(self._pos, row + 1)
+            if self._free_rows:
+                row = self.rows[j] = self._free_rows.pop()
+            else:
+                row = self.rows[j] = self._num_rows
+                self._num_rows += 1
+                if row >= len(self._ids):
+                    self._ids = _grow(self._ids, row + 1)
+                    self._pos = _grow(self._pos, row + 1)
+                self._slots.append([])
             self._ids[row] = j
-            self._slots.append([])
         self._pos[row] = p_world
 
     def position(self, j: int) -> np.ndarray:
         return self._pos[self.rows[j]]
 
     def forget(self, j: int) -> None:
-        """Landmark j is no longer a candidate (a duplicate of an older one): its row is dead (no position, never
-        visible) until the rows are compacted, once more than half of them are dead."""
+        """Landmark j is no longer a candidate (a duplicate of an older one): its row and snapshot slots are dead
+        (no position, no depth: never visible or comparable) and taken again by the next new ones."""
         row = self.rows.pop(j, None)
         if row is None:
             return
         self._ids[row], self._pos[row] = -1, np.nan
-        self._num_forgotten += 1
-        if self._num_forgotten >= _COMPACT_MIN and 2 * self._num_forgotten > self._num_rows:
-            self._compact()
-
-    def _compact(self) -> None:
-        """Drop the dead rows and their snapshots (the order of what is kept stays)."""
-        live = [r for r in range(self._num_rows) if self._ids[r] >= 0]
-        kept = [slot for r in live for slot in self._slots[r]]
-        slot_to = {slot: i for i, slot in enumerate(kept)}
-        row_to = np.full(self._num_rows, -1, np.int64)
-        row_to[live] = np.arange(len(live))
-        idx = np.asarray(kept, np.int64)
-        self._ids, self._pos = self._ids[live], self._pos[live]
-        self._snap_row, self._snap_desc = row_to[self._snap_row[idx]], self._snap_desc[idx]
-        self._snap_dir, self._snap_depth = self._snap_dir[idx], self._snap_depth[idx]
-        self._slots = [[slot_to[slot] for slot in self._slots[r]] for r in live]
-        self._num_rows, self._num_snaps, self._num_forgotten = len(live), len(kept), 0
-        self.rows = {int(j): i for i, j in enumerate(self._ids.tolist())}
+        slots = self._slots[row]
+        self._snap_depth[slots] = np.nan
+        self._free_slots += slots
+        self._slots[row] = []
+        self._free_rows.append(row)
 
     def _new_slot(self, row: int) -> int:
         slots = self._slots[row]
         if len(slots) >= MAX_SNAPSHOTS:  # keep the first view and the newest ones
             slot = slots.pop(1)
+        elif self._free_slots:
+            slot = self._free_slots.pop()
         else:
             slot = self._num_snaps
             self._num_snaps += 1

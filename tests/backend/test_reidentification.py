@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 
-import backend.atlas as atlas_module
 from backend.atlas import LandmarkAtlas, gravity_angles_deg
 from backend.landmarks import LandmarkBook
 from backend.reidentification import Reidentification
@@ -153,21 +152,21 @@ def test_atlas_keeps_a_few_snapshots_from_distinct_viewpoints():
     assert atlas.num_snapshots(100) == 6  # bounded
 
 
-def test_forgotten_landmarks_are_no_candidates_and_compaction_keeps_the_others(monkeypatch):
-    monkeypatch.setattr(atlas_module, "_COMPACT_MIN", 5)
+def test_forgotten_landmarks_are_no_candidates_and_their_rows_and_slots_are_taken_again():
     atlas, pts, desc = _atlas()
     pose = _look(5.0, c=(0.05, -1.0, 0.0))
     uv = _pixels(pose, pts) + 1.5
     before = atlas.match(pose, uv, desc, np.ones(40, bool), exclude=set())
     assert len(before) > 30
-    for j in range(100, 125):  # the 21st forgotten row makes more than half of the rows dead: compacted
+    for j in range(100, 125):
         atlas.forget(j)
-    assert len(atlas) == 15 and atlas._num_rows == 19 and atlas._num_forgotten == 4
+    assert len(atlas) == 15 and atlas.num_snapshots(110) == 0 and atlas.num_snapshots(130) == 1
     after = atlas.match(pose, uv, desc, np.ones(40, bool), exclude=set())
     assert after == {row: j for row, j in before.items() if j >= 125}
-    assert atlas.num_snapshots(130) == 1 and atlas.num_snapshots(110) == 0
-    atlas.set_position(200, pts[0])  # a new landmark after the compaction gets a row of its own
-    assert atlas.rows[200] == 19 and np.array_equal(atlas.position(200), pts[0])
+    atlas.set_position(200, pts[3])  # a new landmark takes a forgotten row and slot: the storage stays
+    atlas.remember(_look(0.0), np.array([200]), desc[3:4], np.ones(1, bool))
+    assert atlas._num_rows == 40 and atlas._num_snaps == 40 and atlas.rows[200] < 25
+    assert atlas.match(pose, uv[3:4], desc[3:4], np.ones(1, bool), exclude=set()) == {0: 200}
 
 
 def test_a_retiring_duplicate_of_an_older_landmark_leaves_the_atlas():
