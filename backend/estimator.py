@@ -186,8 +186,7 @@ class VioEstimator:
         st = self.state
         st.sync()
         if self._chunks is not None:
-            st.all_factors = self._chunks.whole(st.all_factors)  # every factor kept, in one graph again
-            self._chunks.gather()
+            st.all_factors = self._chunks.gather(st.all_factors)  # every factor kept, in one graph again
         if refine and self._chunks is not None and self._chunks.start > 0:
             self._warn("no batch refinement: the factors of finished chunks were let go (smoother.keep_factors)")
             refine = False

@@ -17,6 +17,8 @@ keyframe (measured on the 60 s orbit: see docs/BENCHMARKS.md). After a flush the
 
 from __future__ import annotations
 
+import itertools
+
 import gtsam
 import numpy as np
 
@@ -28,6 +30,8 @@ from backend.smoother import SolverFailure
 from vio.config import ReidentificationConfig
 from vio.descriptors import Describe
 from vio.records import ReidentificationEvent
+
+_NEIGHBOURS = list(itertools.product((-1, 0, 1), repeat=3))  # a grid cell and the 26 around it
 
 
 class Reidentification:
@@ -80,14 +84,11 @@ class Reidentification:
             self._grid.setdefault(cell, []).append(j)
             self._cell_of[j] = cell
             return
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                for dz in (-1, 0, 1):
-                    for i in self._grid.get((cell[0] + dx, cell[1] + dy, cell[2] + dz), ()):
-                        if i in self.atlas.rows and np.linalg.norm(self.atlas.position(i) - p_world) <= r:
-                            self.atlas.forget(j)
-                            self.num_merged += 1
-                            return
+        near = (i for d in _NEIGHBOURS for i in self._grid.get((cell[0] + d[0], cell[1] + d[1], cell[2] + d[2]), ()))
+        if any(i in self.atlas.rows and np.linalg.norm(self.atlas.position(i) - p_world) <= r for i in near):
+            self.atlas.forget(j)
+            self.num_merged += 1
+            return
         self._grid.setdefault(cell, []).append(j)
         self._cell_of[j] = cell
 

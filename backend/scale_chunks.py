@@ -95,10 +95,11 @@ class ScaleChunks:
         graph.push_back(current)
         return graph
 
-    def gather(self) -> None:
-        """At the end of the run, once `whole` has replaced the caller's block: one block again (so a second
-        `whole` does not count the factors twice)."""
+    def gather(self, current: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
+        """At the end of the run: `whole`, which becomes the caller's one block (a later `whole` is just it)."""
+        graph = self.whole(current)
         self._blocks, self._first, self._updates = [], -1, 0
+        return graph
 
     def due(self, num_keyframes: int) -> bool:
         """Enough keyframes for `maybe_close` to look (cheap; the smoother decides when they left it)."""

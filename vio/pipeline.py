@@ -41,8 +41,9 @@ from vio.tracking import TrackColours, tracked_frames
 
 log = logging.getLogger(__name__)
 
-# Python's full (generation 2) garbage collections scan every object the run keeps: 21-64 ms each, seven times in
-# the first 220 s of the 10-minute orbit, longer as the map grows. Every this many keyframes the objects alive are
+# Python's full (generation 2) garbage collections scan every object the run keeps: 21-64 ms each, seven in a run
+# over the first 220 s of the 10-minute orbit; with the freeze the worst keyframe per minute of the whole orbit fell
+# from 71-236 ms CPU to 76-118 ms (docs/BENCHMARKS.md). Every this many keyframes the objects alive are
 # frozen (`gc.freeze`: out of the collector's sight; reference counting still frees them), so a full collection
 # scans only what came since; short-lived cycles are collected before they are frozen. Unfrozen at the end.
 GC_FREEZE_KEYFRAMES = 25

@@ -121,8 +121,8 @@ class _Window:
 def test_scale_chunks_as_the_run_goes_match_the_end_of_run_chunks():
     """Two laps of 30 keyframes in chunks of 20, factors in blocks of 5 keyframes: closed as the window moves on
     (kf 0-19 once kf 30 has left it, 20-39 once kf 50 has), the blocks of closed chunks dropped with their
-    preintegrations, and the sigma the
-    same as the end-of-run computation's three chunks of 20 (the weak landmark priors it adds aside)."""
+    preintegrations, and the sigma the same as the end-of-run computation's three chunks of 20 (the weak landmark
+    priors it adds aside)."""
     graph, values, ks = _two_laps(seed=5)
     end_of_run = scale_uncertainty(graph, values, ks, chunk_keyframes=20)
     chunks = ScaleChunks(landmark_prior_sigma_m=5.0, compute=True, chunk_keyframes=20, block_keyframes=5)
