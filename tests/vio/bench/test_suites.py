@@ -56,7 +56,7 @@ def _python_suites() -> dict:
     }
 
 
-@pytest.mark.parametrize("name", [s for s in SUITES if s not in ("scale", "scale60")])
+@pytest.mark.parametrize("name", [s for s in SUITES if s not in ("scale", "scale60", "model_guided")])
 def test_packaged_suites_keep_their_cases_and_methods(name):
     cases, methods, plots = _python_suites()[name]
     suite = get_suite(name)
@@ -143,9 +143,18 @@ def test_model_args_reach_the_method_and_survive_its_dict_form(tmp_path):
     assert method_from_dict(as_json) == method
 
 
+def test_model_guided_suite_films_the_model_seeds_with_the_capture_advice():
+    guided = get_suite("model_guided")
+    plain = get_suite("model")
+    assert [c.seed for c in guided.cases] == [c.seed for c in plain.cases] == MODEL_SEEDS
+    assert all(c.phases == {"still_start_s": 3.0, "excite_s": 5.0, "still_end_s": 3.0} for c in guided.cases)
+    assert all(c.stills_hz == 2.0 and c.duration_s == 60.0 and c.imu == "phone" for c in guided.cases)
+    assert guided.methods == (MODEL,) and not guided.plots
+
+
 def test_unknown_suite_names_the_known_ones():
     with pytest.raises(
-        ConfigError, match="unknown benchmark suite 'nope'; known: drift60, full, model, parts, quick, scale, scale60"
+        ConfigError, match="unknown benchmark suite 'nope'; known: drift60, full, model, model_guided, parts, quick, scale, scale60"
     ):
         get_suite("nope")
 
