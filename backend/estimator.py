@@ -123,6 +123,8 @@ class VioEstimator:
         self._still_k: set[int] = set()  # keyframes held by the phone being at rest (run health, blind admission)
         self._num_variables: list[int] = []  # variables in the smoother after each steady-state keyframe
         self._cpu_ms: list[float] = []  # CPU time of this process in each steady-state keyframe's update, ms
+        self._background_ms: list[tuple[float, float]] = []  # (wall, CPU) ms of each background step
+        self._chores_k: int | None = None  # the keyframe whose housekeeping (`_chores`) is still to do
         self._scale: ScaleUncertainty | None = None  # from the graph, after finish()
         self._chunks: ScaleChunks | None = None  # bounded memory: fixed lag, factors not kept (backend/scale_chunks.py)
         if cfg.smoother.kind == "fixed_lag" and not cfg.smoother.keep_factors and not cfg.run.refine:
@@ -147,6 +149,7 @@ class VioEstimator:
         re-identification (backend/reidentification.py); without it every new track is a new landmark.
         """
         st = self.state
+        self.background()  # a no-op when the caller ran it after the last keyframe (the pipeline does)
         k = 0 if st.last_k is None else st.last_k + 1
         t_ns = self.timing.pose_time_ns(t_ns)
         if st.last_k is not None and t_ns <= st.t_ns[st.last_k]:
@@ -184,6 +187,7 @@ class VioEstimator:
         from the graph (metric runs only); returns what was done."""
         info: dict[str, Any] = {"refined": False}
         st = self.state
+        self.background()  # one that is due after the last keyframe
         st.sync()
         if self._chunks is not None:
             st.all_factors = self._chunks.gather(st.all_factors)  # every factor kept, in one graph again
@@ -257,12 +261,40 @@ class VioEstimator:
             scale_pairs=() if self._scale is None else self._scale.pairs,
             smoother_variables=tuple(self._num_variables),
             step_cpu_ms=tuple(self._cpu_ms),
+            background_ms=tuple(self._background_ms),
             keyframe_projections=tuple(
                 (k, t, self.state.projections.get(k, 0)) for k, t in sorted(self.state.t_ns.items())
             ),
             time_offset=self.timing.report(),
             still_keyframes=tuple(self.state.t_ns[k] for k in sorted(self._still_k)),
         )
+
+    def background(self) -> None:
+        """The deferred work (`smoother.background`): the last keyframe's housekeeping (`_chores`), then the
+        relinearisation and the marginalisation that keyframe updates leave out, when due. The pipeline calls it
+        once a keyframe's estimate has gone out; when a caller does not, the next keyframe runs it first, with the
+        same answer. Each call that did something is timed in `EstimatorStats.background_ms`."""
+        st = self.state
+        if not self.initialised:
+            return
+        t0, c0 = time.perf_counter(), time.process_time()
+        worked = self._chores()  # first: on the state the keyframe left, as when they end the keyframe
+        if st.smoother.background_due():
+            worked = True
+            k = st.last_k
+            try:
+                marginalised = st.smoother.background()
+                est = st.smoother.estimate_keys(st.recent_keys(k))
+                st.dirty = True
+                for j, p in self.old.keep(marginalised).items():
+                    self.reidentification.on_retired(j, p)
+            except SolverFailure as exc:
+                est = self._recover(k - 1, k, str(exc))
+            st.absorb(est)
+            if self.use_imu:
+                st.bias = st.values.atConstantBias(B(k))
+        if worked:
+            self._background_ms.append(((time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3))
 
     # ----------------------------------------------------------------- steady state
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
@@ -309,15 +341,29 @@ class VioEstimator:
         st.absorb(est)
         if self.use_imu:
             st.bias = st.values.atConstantBias(B(k))
-        if k % PRUNE_EVERY_KEYFRAMES == 0:
-            self._prune(k)
-        if self._chunks is not None and self._chunks.due(len(st.t_ns)):
-            self._chunks.maybe_close(st.all_factors, st.values, sorted(st.t_ns), st.smoother, st.pims)
+        self._chores_k = k
+        if not st.smoother.deferred:
+            self._chores()
         ms = (time.perf_counter() - t0) * 1e3
         self._timings_ms.append(ms)
         self._num_variables.append(st.smoother.num_variables())
         self._cpu_ms.append((time.process_time() - c0) * 1e3)
         return st.state(k, ms, self.use_imu)
+
+    def _chores(self) -> bool:
+        """Housekeeping after keyframe `_chores_k` that leaves the estimate as it is: the pruning of old track views
+        and the scale's chunks (`smoother.background`: in the background step, else at the end of the keyframe).
+        True when there was some."""
+        k, self._chores_k = self._chores_k, None
+        if k is None:
+            return False
+        st = self.state
+        worked = k % PRUNE_EVERY_KEYFRAMES == 0
+        if worked:
+            self._prune(k)
+        if self._chunks is not None and self._chunks.due(len(st.t_ns)):
+            worked |= self._chunks.maybe_close(st.all_factors, st.values, sorted(st.t_ns), st.smoother, st.pims)
+        return worked
 
     def _prune(self, k: int) -> None:
         """Bounded memory: forget the track views no part of the estimator looks at again (older than the

@@ -60,15 +60,23 @@ class Smoother:
         self._getter_of: dict[int, str] = {}  # key -> the name of its estimate getter
         if self.kind not in ("isam2", "fixed_lag"):
             raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
+        self.deferred = self.kind == "fixed_lag" and cfg.background
         self.reset()
 
     def reset(self) -> None:
+        params = isam2_params(self.cfg)
+        if self.deferred:
+            # gtsam relinearises in its updates number n, 2n, ... counted from 1 (n = relinearizeSkip): with
+            # n = skip + 1 those are the background steps, each after `relinearize_skip` updates (tested)
+            params.relinearizeSkip = int(self.cfg.relinearize_skip) + 1
         if self.kind == "isam2":
-            self._isam = gtsam.ISAM2(isam2_params(self.cfg))
+            self._isam = gtsam.ISAM2(params)
         else:
-            self._isam = gtsam.IncrementalFixedLagSmoother(self.cfg.lag_s, isam2_params(self.cfg))
+            self._isam = gtsam.IncrementalFixedLagSmoother(self.cfg.lag_s, params)
         self._keys: set[int] = set()
         self._stamps: dict[int, float] = {}  # fixed lag: key -> its latest timestamp, s (as the smoother holds it)
+        self._num_updates = 0  # gtsam updates since the reset (its relinearisation counter)
+        self._held: dict[int, float] = {}  # deferred: key -> its timestamp, held back until the background step
 
     def num_variables(self) -> int:
         """Variables in the solver now (fixed lag: the window only)."""
@@ -82,9 +90,37 @@ class Smoother:
         self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, timestamps: dict[int, float]
     ) -> gtsam.Values:
         """Add factors and new variables; timestamps (s) are used by the fixed-lag smoother only. Returns the last
-        estimate of the variables that this update marginalised (fixed lag; always empty for iSAM2)."""
+        estimate of the variables that this update marginalised (fixed lag; always empty for iSAM2).
+
+        Deferred (`smoother.background`): the update neither relinearises nor marginalises; timestamps newer than
+        the smoother's newest are held back for the background step. A step that is due must have run before the
+        caller built this update's factors (it may marginalise variables they would use): a RuntimeError if not."""
         if self.kind == "fixed_lag" and self.cfg.marginalise_every_s > 0:
             timestamps = {key: self._block(t) for key, t in timestamps.items()}
+        if not self.deferred or self._num_updates == 0:
+            return self._update(graph, values, timestamps)
+        if self.background_due():
+            raise RuntimeError("the smoother's background step is due: run background() before building the update")
+        newest = max(self._stamps.values(), default=math.inf)
+        for key, t in timestamps.items():
+            if t > newest:
+                self._held[key] = t
+        return self._update(graph, values, {key: min(t, newest) for key, t in timestamps.items()})
+
+    def background_due(self) -> bool:
+        """Deferred: True when the background step should run now (after every `relinearize_skip` keyframes)."""
+        n = self.cfg.relinearize_skip + 1
+        return self.deferred and self._num_updates > 0 and (self._num_updates + 1) % n == 0
+
+    def background(self) -> gtsam.Values:
+        """Deferred: relinearise the window and marginalise what left the lag with the held-back timestamps (one
+        gtsam update without new factors); returns the last estimate of what it marginalised, as `update` does."""
+        held, self._held = self._held, {}
+        return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held)
+
+    def _update(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, timestamps: dict[int, float]
+    ) -> gtsam.Values:
         leaving = self._leaving(timestamps)
         try:
             retired = self.estimate_keys([key for key in leaving if key in self._keys])
@@ -97,6 +133,7 @@ class Smoother:
                 self._isam.update(graph, values, timestamps)
         except RuntimeError as exc:
             raise SolverFailure(first_line(exc)) from exc
+        self._num_updates += 1
         self._keys.update(values.keys())
         self._keys.difference_update(leaving)
         for key in leaving:

@@ -255,7 +255,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("bench", help="Monte-Carlo drift benchmark against baselines")
-    p.add_argument("--suite", default="quick", help="tiny | quick | full | drift60 | model | parts, or a suite YAML")
+    p.add_argument(
+        "--suite",
+        default="quick",
+        help="tiny | quick | full | drift60 | model | model_guided | parts | scale | scale60, or a suite YAML",
+    )
     p.add_argument("--out", required=True, help="output folder; a suite run again into it resumes")
     p.add_argument("--jobs", type=int, default=2, help="parallel jobs (local threads or LocalCluster workers)")
     p.add_argument(

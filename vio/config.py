@@ -97,6 +97,10 @@ class SmootherConfig:
     # the run goes and each finished chunk's factors let go, so memory stays bounded (backend/scale_chunks.py);
     # --refine keeps them anyway
     keep_factors: bool = True
+    # fixed lag only: a keyframe's update adds its factors and solves, nothing more; the relinearisation (every
+    # relinearize_skip keyframes) and the marginalisation of what left the lag wait for a background step that the
+    # pipeline runs once the keyframe's estimate is out (`Smoother.background`), so neither delays a keyframe
+    background: bool = False
 
 
 @dataclass(frozen=True)

@@ -164,6 +164,7 @@ def run_summary(
             "max": float(tm.max()) if tm.size else 0.0,
             "per_keyframe": [round(float(x), 2) for x in tm],
         },
+        "background_ms": _background_summary(stats.background_ms),
         "scale": {
             "sigma_rel": stats.scale_sigma_rel,  # relative standard deviation of the metric scale (graph)
             "pairs": [{"k_a": a, "k_b": b, "distance_m": d, "sigma_m": s} for a, b, d, s in stats.scale_pairs],
@@ -173,6 +174,20 @@ def run_summary(
         "refine": refine,
         "warnings": list(cap.warnings) + list(stats.warnings) + errors,
         "config": cfg.to_dict(),
+    }
+
+
+def _background_summary(steps: tuple[tuple[float, float], ...]) -> dict[str, Any]:
+    """run.json `background_ms`: the smoother's deferred steps between keyframes (`smoother.background`)."""
+    if not steps:
+        return {"count": 0}
+    wall, cpu = np.asarray(steps, float).T
+    return {
+        "count": len(steps),
+        "median": float(np.median(wall)),
+        "p95": float(np.percentile(wall, 95)),
+        "max": float(wall.max()),
+        "cpu_total_s": float(cpu.sum() * 1e-3),
     }
 
 

@@ -231,6 +231,11 @@ def _run(
                     for s in produced:
                         for sink in sinks:
                             sink.on_estimate(s, {"solve_ms": s.solve_ms, "num_landmarks": len(live)})
+                try:  # the smoother's deferred work, once the keyframe's estimate is out (smoother.background)
+                    est.background()
+                except (RuntimeError, ValueError) as exc:
+                    errors.append(f"background step after t={tracks.t_ns} ns skipped: {type(exc).__name__}: {exc}")
+                    log.warning(errors[-1])
             bar.update(n_done, n_kf)
     except TooManySkipped as exc:
         failure, kind = f"{cap.root}: {exc}", CaptureError

@@ -254,6 +254,9 @@ class EstimatorStats:
     num_blind_admitted: int = 0  # landmarks admitted over those adjusted poses (backend/blind_admission.py)
     smoother_variables: tuple[int, ...] = ()  # variables in the smoother after each steady-state keyframe
     step_cpu_ms: tuple[float, ...] = ()  # CPU time of each steady-state keyframe's update (no start), ms
+    # (wall, CPU) ms of each background step between keyframes (`smoother.background`: relinearisation and
+    # marginalisation after the keyframe's estimate is out)
+    background_ms: tuple[tuple[float, float], ...] = ()
     scale_sigma_rel: float | None = None  # relative standard deviation of the metric scale, from the graph
     scale_pairs: tuple[tuple[int, int, float, float], ...] = ()  # (k_a, k_b, distance m, its sigma m) behind it
     # (k, t_ns, projection factors on the keyframe's pose in the whole graph) per keyframe, in time order; 0: the

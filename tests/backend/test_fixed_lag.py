@@ -11,9 +11,11 @@ import gtsam
 import numpy as np
 import pytest
 
+from backend.estimator import VioEstimator
 from backend.smoother import Smoother
+from frontend.preintegration import ImuPreintegrator
 from tests.backend.test_estimator import ate_se3, run_estimator, synthetic_run
-from vio.config import SmootherConfig, load_config
+from vio.config import ImuConfig, SmootherConfig, load_config
 from vio.records import FeatureTracks
 
 
@@ -68,6 +70,76 @@ def test_marginalise_in_blocks():
         sizes.append(sm.num_variables())
     assert set(sm.estimate().keys()) == {X(k) for k in range(20, 40)}  # between one lag and one lag + a block
     assert max(sizes) == 20
+
+
+def _chain(sm: Smoother, n: int, between_calls=None) -> list[int]:
+    """Poses 0.1 s apart in a chain with a prior on the first; `between_calls(k)` after each update. Returns the
+    keys each update marginalised, in order."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    X = gtsam.symbol_shorthand.X
+    step = gtsam.Pose3(gtsam.Rot3.Yaw(0.05), np.array([0.1, 0.0, 0.0]))
+    left: list[int] = []
+    for k in range(n):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if k == 0:
+            graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise))
+        else:
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, noise))
+        values.insert(X(k), gtsam.Pose3(gtsam.Rot3(), np.array([0.1 * k + 0.01 * (k % 3), 0.02, 0.0])))
+        left += list(sm.update(graph, values, {X(k): 0.1 * k + 1e-6}).keys())
+        if between_calls is not None:
+            between_calls(k)
+    return left
+
+
+def test_background_step_takes_the_relinearisation_and_the_marginalisation_out_of_the_updates():
+    """`smoother.background`: no keyframe update relinearises or marginalises; the background step, due after every
+    `relinearize_skip` updates, does both; and skipping the calls gives the same answer to the bit (the next update
+    runs a step that is due first)."""
+    cfg = SmootherConfig(
+        kind="fixed_lag", lag_s=0.5, marginalise_every_s=0.2, relinearize_skip=2, relinearize_threshold=1e-9,
+        background=True,
+    )  # fmt: skip
+    sm = Smoother(cfg)
+    relinearised, steps, left_in_steps = [], [], []
+
+    def after(k: int) -> None:
+        relinearised.append(sm._isam.getISAM2Result().getVariablesRelinearized())
+        if sm.background_due():
+            left_in_steps.extend(sm.background().keys())
+            steps.append(sm._isam.getISAM2Result().getVariablesRelinearized())
+
+    left_in_updates = _chain(sm, 30, after)
+    assert not left_in_updates and not any(relinearised)  # the updates did neither
+    assert len(steps) == 15 and all(n > 0 for n in steps)  # after updates 1, 3, ..., 29; each relinearises
+    X = gtsam.symbol_shorthand.X
+    assert left_in_steps == [X(k) for k in range(len(left_in_steps))] and len(left_in_steps) >= 20
+    kept = set(sm.estimate().keys())
+    assert kept == {X(k) for k in range(len(left_in_steps), 30)} and len(kept) <= 10  # lag + a block + 2 updates
+    late = Smoother(cfg)
+    with pytest.raises(RuntimeError, match="background step is due"):
+        _chain(late, 3)  # an update built while a step is due (it could use a variable the step marginalises)
+
+
+def test_background_steps_left_to_the_estimator_give_the_same_answer(data):
+    """The pipeline runs the background step after each keyframe; a caller that does not gets it at the start of
+    the next keyframe instead, with the same estimate to the bit."""
+    cfg = _fixed_lag("smoother.lag_s=1.0", "smoother.background=true")
+    cam, imu, cal, t_kf, tracks, gt = data
+    ests = []
+    for call in (True, False):
+        est = VioEstimator(cam, imu, ImuPreintegrator(imu, cal, ImuConfig()).between, cfg)
+        for t, tr in zip(t_kf, tracks, strict=True):
+            est.add_keyframe(int(t), tr)
+            if call:
+                est.background()
+        est.finish()  # runs one that is due after the last keyframe
+        ests.append(est)
+    steps = [len(est.stats().background_ms) for est in ests]
+    assert steps[0] > 20 and steps[1] == steps[0]  # the same steps, run at either place
+    a, b = (np.array([s.world_T_body for s in est.states()]) for est in ests)
+    assert a.shape == b.shape and np.array_equal(a, b)
+    assert not ests[0].stats().recoveries
 
 
 def test_fixed_lag_is_accurate_on_a_short_capture(data):

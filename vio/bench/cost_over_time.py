@@ -8,7 +8,8 @@ tracker runs in a process of its own, `run.tracker_process`; that process's memo
 `step_cpu_ms`, this process's CPU time; ms), placed at its keyframe's capture time. Written to DIR: the run's files
 in `run/`, `cost.json` (per minute of capture: keyframes, latency p50/p95/p99/max ms, wall and CPU, peak and last
 resident memory MiB; the whole run's wall time, real-time factor, peak memory, the load average, ATE against the
-ground truth when the capture has one) and `cost.png` (latency and memory over the capture).
+ground truth when the capture has one; the smoother's background steps between keyframes, `smoother.background`)
+and `cost.png` (latency and memory over the capture).
 
 Wall-clock latencies are only comparable between runs made under the same load (the load average at the start and
 the end is recorded beside them); CPU latencies much less depend on what else the machine runs.
@@ -163,6 +164,7 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "keyframe_t_s": t_s.round(3).tolist(),
         "keyframe_ms": steps.round(2).tolist(),
         "keyframe_cpu_ms": np.round(stats.step_cpu_ms, 2).tolist(),
+        "background": _background(stats.background_ms),
         "memory": mem.round(2).tolist(),  # (capture time s, resident MiB) while the frames are read
         "end_memory": samples[samples[:, 2] == 1, :2].round(2).tolist(),  # the same after the last frame
         "children_memory": np.round(sampler.children, 2).tolist(),  # (capture time s, child processes' MiB)
@@ -170,6 +172,18 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
     if cap.ground_truth is not None:
         record["ate_se3_m"], record["scale"] = _ate(cap, out / "run" / "trajectory.tum")
     return record
+
+
+def _background(steps: tuple[tuple[float, float], ...]) -> dict[str, Any]:
+    """The smoother's background steps between keyframes (`smoother.background`): count, wall and CPU ms
+    percentiles, CPU s in all."""
+    if not steps:
+        return {"count": 0}
+    wall, cpu = np.asarray(steps, float).T
+    out: dict[str, Any] = {"count": len(steps), "cpu_total_s": float(cpu.sum() * 1e-3)}
+    for name, x in (("wall", wall), ("cpu", cpu)):
+        out[name] = {f"p{q}": float(np.percentile(x, q)) for q in (50, 95, 99)} | {"max": float(x.max())}
+    return out
 
 
 def _ate(cap: Any, trajectory: Path) -> tuple[float, float]:
@@ -263,6 +277,13 @@ def main(argv: list[str] | None = None) -> int:
             f"minute {row['minute']}: {row['keyframes']} keyframes, latency ms p50 {row['p50']:.0f} p95 "
             f"{row['p95']:.0f} p99 {row['p99']:.0f} max {row['max']:.0f} (CPU p95 {row['cpu']['p95']:.0f} p99 "
             f"{row['cpu']['p99']:.0f} max {row['cpu']['max']:.0f}), RSS peak {row['rss_peak_mib']:.0f} MiB"
+        )
+    bg = record["background"]
+    if bg["count"]:
+        print(
+            f"background steps between keyframes: {bg['count']}, ms p50 {bg['wall']['p50']:.0f} p95 "
+            f"{bg['wall']['p95']:.0f} max {bg['wall']['max']:.0f} (CPU p95 {bg['cpu']['p95']:.0f}), "
+            f"{bg['cpu_total_s']:.1f} CPU s in all"
         )
     ate = f", ATE {1e3 * record['ate_se3_m']:.2f} mm" if "ate_se3_m" in record else ""
     print(

@@ -32,7 +32,8 @@ from typing import Any
 from vio.errors import ConfigError
 
 SUITE_DIR = Path(__file__).resolve().parent / "suite_files"
-SUITES = ("tiny", "quick", "full", "drift60", "model", "model_guided", "parts", "scale", "scale60")  # the packaged suites
+# the packaged suites
+SUITES = ("tiny", "quick", "full", "drift60", "model", "model_guided", "parts", "scale", "scale60")
 PARTS = ("cube", "cube_features", "freeform")
 ROOT = Path(__file__).resolve().parents[2]
 SHARED = ROOT.parent / "shared"
