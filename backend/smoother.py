@@ -101,7 +101,7 @@ class Smoother:
             return self._update(graph, values, timestamps)
         if self.background_due():
             raise RuntimeError("the smoother's background step is due: run background() before building the update")
-        newest = max(self._stamps.values(), default=math.inf)
+        newest = max(self._stamps.values(), default=math.inf) if self.cfg.background_marginalises else math.inf
         for key, t in timestamps.items():
             if t > newest:
                 self._held[key] = t

@@ -101,6 +101,9 @@ class SmootherConfig:
     # relinearize_skip keyframes) and the marginalisation of what left the lag wait for a background step that the
     # pipeline runs once the keyframe's estimate is out (`Smoother.background`), so neither delays a keyframe
     background: bool = False
+    # with background: the variables that left the lag are marginalised in the background step too (their
+    # timestamps held back until then); false: in the keyframe's update, as without background
+    background_marginalises: bool = True
 
 
 @dataclass(frozen=True)
