@@ -21,6 +21,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from backend import deferred
 from backend import factors as fb
 from backend.admission import LandmarkAdmission
 from backend.anchoring import KnownPosition, PositionAnchor
@@ -51,7 +52,6 @@ log = logging.getLogger(__name__)
 Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
 _MIN_DEPTH_M = 0.05  # a landmark's new view must be at least this far in front of the camera, m
 _EXACT_MARGIN = 1e-6  # px and m: the all-at-once reprojection decides only when this far from a threshold
-PRUNE_EVERY_KEYFRAMES = 50  # old track views and lost tracks' segments are forgotten this often (bounded memory)
 PRUNE_MARGIN = 20  # keyframes kept beyond the oldest one any part of the estimator looks back to
 
 
@@ -270,31 +270,8 @@ class VioEstimator:
         )
 
     def background(self) -> None:
-        """The deferred work (`smoother.background`): the last keyframe's housekeeping (`_chores`), then the
-        relinearisation and the marginalisation that keyframe updates leave out, when due. The pipeline calls it
-        once a keyframe's estimate has gone out; when a caller does not, the next keyframe runs it first, with the
-        same answer. Each call that did something is timed in `EstimatorStats.background_ms`."""
-        st = self.state
-        if not self.initialised:
-            return
-        t0, c0 = time.perf_counter(), time.process_time()
-        worked = self._chores()  # first: on the state the keyframe left, as when they end the keyframe
-        if st.smoother.background_due():
-            worked = True
-            k = st.last_k
-            try:
-                marginalised = st.smoother.background()
-                est = st.smoother.estimate_keys(st.recent_keys(k))
-                st.dirty = True
-                for j, p in self.old.keep(marginalised).items():
-                    self.reidentification.on_retired(j, p)
-            except SolverFailure as exc:
-                est = self._recover(k - 1, k, str(exc))
-            st.absorb(est)
-            if self.use_imu:
-                st.bias = st.values.atConstantBias(B(k))
-        if worked:
-            self._background_ms.append(((time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3))
+        """The deferred work after a keyframe (`smoother.background`; backend/deferred.py `background`)."""
+        deferred.background(self)
 
     # ----------------------------------------------------------------- steady state
     def _step(self, prev: int, k: int, ids: np.ndarray) -> StateEstimate:
@@ -343,27 +320,12 @@ class VioEstimator:
             st.bias = st.values.atConstantBias(B(k))
         self._chores_k = k
         if not st.smoother.deferred:
-            self._chores()
+            deferred.chores(self)
         ms = (time.perf_counter() - t0) * 1e3
         self._timings_ms.append(ms)
         self._num_variables.append(st.smoother.num_variables())
         self._cpu_ms.append((time.process_time() - c0) * 1e3)
         return st.state(k, ms, self.use_imu)
-
-    def _chores(self) -> bool:
-        """Housekeeping after keyframe `_chores_k` that leaves the estimate as it is: the pruning of old track views
-        and the scale's chunks (`smoother.background`: in the background step, else at the end of the keyframe).
-        True when there was some."""
-        k, self._chores_k = self._chores_k, None
-        if k is None:
-            return False
-        st = self.state
-        worked = k % PRUNE_EVERY_KEYFRAMES == 0
-        if worked:
-            self._prune(k)
-        if self._chunks is not None and self._chunks.due(len(st.t_ns)):
-            worked |= self._chunks.maybe_close(st.all_factors, st.values, sorted(st.t_ns), st.smoother, st.pims)
-        return worked
 
     def _prune(self, k: int) -> None:
         """Bounded memory: forget the track views no part of the estimator looks at again (older than the

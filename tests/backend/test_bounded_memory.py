@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 import pytest
 
+import backend.deferred as deferred_module
 import backend.estimator as estimator_module
 from backend.estimator import VioEstimator
 from backend.landmarks import LandmarkBook
@@ -88,9 +89,9 @@ def test_pruning_changes_no_estimate(long_data, monkeypatch, unique):
     lost tracks and their segments): the same states and landmarks to the bit."""
     data = _unique_ids(long_data) if unique else long_data
     cfg = load_config(None, [], presets=["fixed_lag"])
-    monkeypatch.setattr(estimator_module, "PRUNE_EVERY_KEYFRAMES", 10**9)
+    monkeypatch.setattr(deferred_module, "PRUNE_EVERY_KEYFRAMES", 10**9)
     kept = _run(data, cfg, unique)
-    monkeypatch.setattr(estimator_module, "PRUNE_EVERY_KEYFRAMES", 7)
+    monkeypatch.setattr(deferred_module, "PRUNE_EVERY_KEYFRAMES", 7)
     monkeypatch.setattr(estimator_module, "PRUNE_MARGIN", 0)
     pruned = _run(data, cfg, unique)
     views = [sum(len(t.views) for t in e.book.tracks.values()) for e in (kept, pruned)]
