@@ -28,12 +28,12 @@ from backend.anchoring import KnownPosition, PositionAnchor
 from backend.blind_admission import BlindAdmission
 from backend.fixed_lag import OldLandmarks
 from backend.graph_state import GraphState
-from backend.initialisation.alignment import static_start
 from backend.initialisation.inertial import InertialInitialiser
 from backend.initialisation.visual import VisualInitialiser
 from backend.initialisation.window import Start
 from backend.keys import B, L, V, X, track_of
 from backend.landmarks import LandmarkBook
+from backend.offset_replay import REPLAY_MIN_PAIRS, KeptKeyframe, OffsetReplay
 from backend.recovery import Recovery
 from backend.reidentification import Reidentification
 from backend.scale_chunks import ScaleChunks
@@ -41,7 +41,9 @@ from backend.segments import TrackSegments
 from backend.smoother import Smoother, SolverFailure, batch_solve, first_line
 from backend.time_offset import CameraTiming
 from backend.uncertainty import ScaleUncertainty, scale_uncertainty
+from backend.view_gate import consistent, reprojections
 from backend.vision_only import VisionOnlyMotion
+from backend.zero_velocity import is_still
 from vio.config import Config
 from vio.descriptors import Describe
 from vio.records import CameraCalib, EstimatorStats, FeatureTracks, ImuSeries, LandmarkMap, StateEstimate
@@ -50,8 +52,6 @@ log = logging.getLogger(__name__)
 
 # Preintegrate(t0_ns, t1_ns, bias) -> object with `.pim` (PreintegratedCombinedMeasurements) and `.gap` (bool).
 Preintegrate = Callable[[int, int, gtsam.imuBias.ConstantBias], Any]
-_MIN_DEPTH_M = 0.05  # a landmark's new view must be at least this far in front of the camera, m
-_EXACT_MARGIN = 1e-6  # px and m: the all-at-once reprojection decides only when this far from a threshold
 PRUNE_MARGIN = 20  # keyframes kept beyond the oldest one any part of the estimator looks back to
 
 
@@ -67,9 +67,18 @@ class VioEstimator:
         positions: list[KnownPosition] | None = None,
         unique_track_ids: bool = False,
     ) -> None:
-        self.camera, self.imu, self.preintegrate, self.cfg = camera, imu, preintegrate, cfg
+        self.camera, self.imu, self.preintegrate = camera, imu, preintegrate
         self.unique_track_ids = unique_track_ids  # the tracks' source never reuses an id (the tracker): lost tracks
         # can be forgotten altogether (`_prune`); tracks read from a file may reuse ids
+        self.positions = positions
+        self.replay = OffsetReplay(
+            cfg.camera.time_offset_replay_s, cfg.camera.estimate_time_offset and cfg.estimator.use_imu
+        )
+        self._build(cfg)
+
+    def _build(self, cfg: Config) -> None:
+        """Every part afresh, with nothing in the graph (at the start, and to re-run it: backend/offset_replay.py)."""
+        self.cfg, positions, camera, imu = cfg, self.positions, self.camera, self.imu
         self.use_imu = cfg.estimator.use_imu
         self._warnings: list[str] = []
         self.state = GraphState(
@@ -151,9 +160,10 @@ class VioEstimator:
         st = self.state
         self.background()  # a no-op when the caller ran it after the last keyframe (the pipeline does)
         k = 0 if st.last_k is None else st.last_k + 1
-        t_ns = self.timing.pose_time_ns(t_ns)
+        t_cam_ns, t_ns = t_ns, self.timing.pose_time_ns(t_ns)
         if st.last_k is not None and t_ns <= st.t_ns[st.last_k]:
             raise ValueError(f"keyframe time {t_ns} ns is not after the previous keyframe's ({st.t_ns[st.last_k]} ns)")
+        self.replay.keep(t_cam_ns, tracks, describe, self.timing.offset_s)
         st.t_ns[k] = t_ns
         uv = self.timing.correct(tracks, fb.undistorted_px(self.camera, tracks.uv))
         if st.last_k is not None and self.use_imu:
@@ -172,7 +182,44 @@ class VioEstimator:
             return [] if start is None else self._started(start)
         state = self._step(prev, k, ids)
         self.timing.after_step(k)
-        return [state]
+        offset_s = (
+            self.timing.converged(self.cfg.camera.time_offset_replay_sigma_s, REPLAY_MIN_PAIRS)
+            if self.replay.kept
+            else None
+        )
+        kept = self.replay.due(offset_s)
+        return [state] if kept is None else self._replayed(kept, offset_s)
+
+    def _replayed(self, kept: list[KeptKeyframe], offset_s: float) -> list[StateEstimate]:
+        """Start again with the offset fixed at `offset_s` and re-run the kept keyframes (backend/offset_replay.py);
+        returns every keyframe's estimate. The first pass's per-keyframe figures stay, the re-run's time is added
+        to the keyframe that triggered it."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        first, pairs = self.timing.report(), self.timing.num_pairs
+        lists = (self._timings_ms, self._cpu_ms, self._num_variables, self._background_ms)
+        self._build(replace(self.cfg, camera=replace(self.cfg.camera, time_offset_s=offset_s)))
+        self.timing.start_known(first.after_initialisation_s, first.initial_s, pairs)
+        for kf in kept:
+            try:
+                self.add_keyframe(kf.t_ns, kf.tracks, kf.describe)
+            except (RuntimeError, ValueError) as exc:  # as the pipeline does: one bad keyframe never ends the run
+                self._warn(f"offset re-run: keyframe at t={kf.t_ns} ns skipped: {type(exc).__name__}: {exc}")
+        self._timings_ms, self._cpu_ms, self._num_variables, self._background_ms = lists
+        if self._timings_ms:
+            self._timings_ms[-1] += (time.perf_counter() - t0) * 1e3
+        if self._cpu_ms:
+            self._cpu_ms[-1] += (time.process_time() - c0) * 1e3
+        placed = [kf.placed_s for kf in kept]
+        self.timing.replayed(len(kept), (kept[-1].t_ns - kept[0].t_ns) * 1e-9, (min(placed), max(placed)))
+        log.info(
+            "time offset %.2f ms: the first %d keyframes (%.1f s) re-run (placed with %.2f to %.2f ms)",
+            offset_s * 1e3,
+            len(kept),
+            (kept[-1].t_ns - kept[0].t_ns) * 1e-9,
+            min(placed) * 1e3,
+            max(placed) * 1e3,
+        )
+        return self.states()
 
     def _started(self, start: Start) -> list[StateEstimate]:
         self._init_kind = start.kind
@@ -289,7 +336,7 @@ class VioEstimator:
             st.set(V(k), nav.velocity())
             st.set(B(k), st.bias)
             st.add(graph, fb.imu_factor(prev, k, st.pims[k]))
-            if self._is_still(prev, k, ids):
+            if is_still(self.cfg.zero_velocity, self.book, self.imu, st.t_ns[k], prev, k, ids):
                 zv = self.cfg.zero_velocity
                 for f in fb.no_motion_factors(prev, k, zv.sigma_rad, zv.sigma_m, zv.velocity_sigma):
                     st.add(graph, f)
@@ -358,8 +405,8 @@ class VioEstimator:
                 if old and self.old.position(j) is None:
                     continue
                 gate = self.reidentification.gate_px(j, self.cfg.landmarks.max_reprojection_px)
-                seen = self._reprojections(k, ids, world_T_body) if seen is None else seen
-                if self._consistent(j, world_T_body, tr.views[k], gate, seen[j]):
+                seen = reprojections(self.book, self.old, smoother, k, ids, world_T_body) if seen is None else seen
+                if consistent(self.book, self.old, smoother, j, world_T_body, tr.views[k], gate, seen[j]):
                     if old:
                         self.old.revive(j, graph, values)
                     st.add_projection(self.reidentification.route(graph, j, k), k, j, tr.views[k], tr.run_start(k))
@@ -383,66 +430,11 @@ class VioEstimator:
         self.reidentification.on_admit(j, p)
         stamps[L(j)] = t_s
 
-    def _reprojections(self, k: int, ids: np.ndarray, world_T_body: np.ndarray) -> dict[int, tuple[float, float]]:
-        """Landmark id -> (reprojection error px, depth m) of keyframe k's view of it from the predicted pose, for
-        every admitted landmark among `ids` that has a position (all at once: one call per landmark cost more)."""
-        js, pts, fresh = [], [], []
-        for j in ids.tolist():
-            if not self.book.tracks[j].admitted:
-                continue
-            p = self.old.position(j)
-            if p is None and not self.state.smoother.has(L(j)):
-                continue
-            js.append(j)
-            pts.append(p)
-            if p is None:
-                fresh.append(len(js) - 1)
-        if fresh:
-            points = self.state.smoother.estimate_points([L(js[i]) for i in fresh])
-            for i, p in zip(fresh, points, strict=True):
-                pts[i] = p
-        uv = np.array([self.book.tracks[j].views[k] for j in js]).reshape(-1, 2)
-        err, depth = self.book.reprojections_px(world_T_body, np.array(pts).reshape(-1, 3), uv)
-        return dict(zip(js, zip(err.tolist(), depth.tolist(), strict=True), strict=True))
-
-    def _consistent(
-        self, j: int, world_T_body: np.ndarray, uv: np.ndarray, gate_px: float, seen: tuple[float, float]
-    ) -> bool:
-        """A new view of landmark j reprojects within `gate_px` from the predicted pose. `seen` is the error and
-        depth from `_reprojections`; within `_EXACT_MARGIN` of a threshold (or not finite) they are computed again
-        one landmark at a time, so the decision is the same to the last bit as it always was."""
-        err, depth = seen
-        if abs(err - gate_px) > _EXACT_MARGIN and abs(depth - _MIN_DEPTH_M) > _EXACT_MARGIN:
-            return depth > _MIN_DEPTH_M and err <= gate_px
-        p = self.old.position(j)
-        if p is None:
-            p = self.state.smoother.estimate_keys([L(j)]).atPoint3(L(j))
-        err, depth = self.book.reprojection_px(world_T_body, p, uv)
-        return depth > _MIN_DEPTH_M and err <= gate_px
-
     def _split_track(self, j: int, k: int) -> None:
         """Track drift: the view of keyframe k disagrees with landmark j, so it starts a new landmark."""
         new = self.segments.split(self.reidentification.unalias(j), j)
         uv = self.book.tracks[j].views.pop(k)
         self.book.observe(k, np.array([new]), uv[None])
-
-    def _is_still(self, prev: int, k: int, ids: np.ndarray) -> bool:
-        """At rest between keyframes prev and k: the tracks shared with prev moved less than `max_flow_px`
-        (median) and the IMU over the last `window_s` passes the at-rest test (zero-velocity update)."""
-        zv = self.cfg.zero_velocity
-        if zv.max_flow_px <= 0:
-            return False
-        shared = [tr.views for tr in (self.book.tracks[j] for j in ids.tolist()) if prev in tr.views]
-        if len(shared) < 5:
-            return False
-        d = np.array([v[k] for v in shared]) - np.array([v[prev] for v in shared])
-        flow = float(np.median(np.sqrt(np.einsum("ij,ij->i", d, d))))  # all at once; near the threshold, as before:
-        if abs(flow - zv.max_flow_px) <= _EXACT_MARGIN:
-            flow = float(np.median([np.linalg.norm(v[k] - v[prev]) for v in shared]))
-        if flow > zv.max_flow_px:
-            return False
-        t1 = self.state.t_ns[k]
-        return static_start(self.imu, t1 - int(zv.window_s * 1e9), t1, zv.max_gyro_std, zv.max_acc_std) is not None
 
     def _recover(self, prev: int, k: int, reason: str) -> gtsam.Values:
         """Rebuild the smoother from the last good state (prev) plus keyframe k's inertial factor or motion prior."""

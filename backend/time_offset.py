@@ -72,6 +72,10 @@ class CameraTiming:
         self._estimates: deque[tuple[float, float]] = deque(maxlen=window if window > 0 else None)
         self._used = 0
         self._trace: list[tuple[float, float]] = []  # (s since the first keyframe, offset applied from then on s)
+        self._start_known = False  # a re-run: the offset is known, the start window's estimate is not applied
+        self._hold_pairs = MIN_ONLINE_PAIRS  # the online estimate is applied once this many pairs went into it
+        self._initial_s = self.offset_s  # the offset the run began with (a re-run's first pass's)
+        self._replay: tuple[int, float, tuple[float, float]] | None = None  # (keyframes, s, first pass placed range)
         self.history: list[tuple[int, float, float]] = []  # (k, that keyframe's estimate s, offset after it s)
 
     # ----------------------------------------------------------------- placing and correcting
@@ -112,9 +116,43 @@ class CameraTiming:
         lag = max(1, min(int(self.cfg.time_offset_lag), len(keyframes) - 1))
         got = [e for e in (self._pair_estimate(k - lag, k) for k in keyframes[lag:]) if e is not None]
         self.history += [(-1, tau, float("nan")) for tau, _ in got]
-        if got:
+        if got and not self._start_known:
             self._after_start = _weighted_mean(got)
             self.offset_s = self._after_start
+
+    @property
+    def num_pairs(self) -> int:
+        """Keyframe pairs in the online estimate."""
+        return len(self._estimates)
+
+    def start_known(self, after_initialisation_s: float | None, initial_s: float, hold_pairs: int) -> None:
+        """A re-run with the offset known (backend/offset_replay.py): neither the start window's estimate nor the
+        online one is applied until `hold_pairs` pairs were read again (as many as gave the known offset: fewer
+        would move it by their noise); the report keeps the first pass's start estimate and initial offset."""
+        self._start_known, self._after_start, self._initial_s = True, after_initialisation_s, initial_s
+        self._hold_pairs = max(int(hold_pairs), MIN_ONLINE_PAIRS)
+
+    def replayed(self, keyframes: int, span_s: float, placed_s: tuple[float, float]) -> None:
+        """Record, for the report, that the first `keyframes` (over `span_s`) were re-run; `placed_s` is the range
+        of offsets the first pass had placed them with."""
+        self._replay = (int(keyframes), float(span_s), placed_s)
+
+    def converged(self, max_sigma_s: float, min_pairs: int) -> float | None:
+        """The online estimate once at least `min_pairs` pairs went into it and its standard error is at most
+        `max_sigma_s`, else None."""
+        if not self.estimating or len(self._estimates) < max(min_pairs, MIN_ONLINE_PAIRS, 2):
+            return None
+        mean, sigma = self._mean_sigma()
+        return mean if sigma <= max_sigma_s else None
+
+    def _mean_sigma(self) -> tuple[float, float]:
+        """The weighted mean of the online pairs' estimates and its standard error from their scatter, s."""
+        tau, w = np.array(self._estimates).T
+        mean = float(np.sum(w * tau) / np.sum(w))
+        lag = max(int(self.cfg.time_offset_lag), 1)  # pairs that overlap are not independent
+        n_eff = float(np.sum(w) ** 2 / np.sum(w * w)) / lag
+        var = float(np.sum(w * (tau - mean) ** 2) / np.sum(w))
+        return mean, float(np.sqrt(var / max(n_eff - 1.0, 1.0)))
 
     def placed(self, k: int, ids: np.ndarray, uv: np.ndarray) -> None:
         """Remember the offset keyframe k's pose was placed with, and its views (landmark ids, corrected pixels)."""
@@ -138,7 +176,7 @@ class CameraTiming:
         if got is None:
             return
         self._estimates.append(got)
-        if len(self._estimates) >= MIN_ONLINE_PAIRS:
+        if len(self._estimates) >= self._hold_pairs:
             target = _weighted_mean(self._estimates)
             self.offset_s += float(np.clip(target - self.offset_s, -MAX_STEP_S, MAX_STEP_S))
         self.history.append((kj, got[0], self.offset_s))
@@ -202,23 +240,19 @@ class CameraTiming:
 
     def report(self) -> TimeOffsetEstimate:
         """What run.json says about the offset and the readout."""
-        sigma = None
-        if self.estimating and len(self._estimates) >= 2:
-            tau, w = np.array(self._estimates).T
-            mean = float(np.sum(w * tau) / np.sum(w))
-            lag = max(int(self.cfg.time_offset_lag), 1)  # pairs that overlap are not independent
-            n_eff = float(np.sum(w) ** 2 / np.sum(w * w)) / lag
-            var = float(np.sum(w * (tau - mean) ** 2) / np.sum(w))
-            sigma = float(np.sqrt(var / max(n_eff - 1.0, 1.0)))
+        sigma = self._mean_sigma()[1] if self.estimating and len(self._estimates) >= 2 else None
         return TimeOffsetEstimate(
             estimated=self.estimating,
             value_s=self.offset_s,
-            initial_s=float(self.cfg.time_offset_s),
+            initial_s=float(self._initial_s),
             after_initialisation_s=self._after_start,
             sigma_s=sigma,
             num_keyframes=self._used,
             readout_s=self.readout_s,
             trace=tuple(self._trace),
+            replayed_keyframes=0 if self._replay is None else self._replay[0],
+            replayed_span_s=None if self._replay is None else self._replay[1],
+            replayed_from_s=None if self._replay is None else self._replay[2],
         )
 
 

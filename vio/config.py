@@ -57,6 +57,10 @@ class CameraConfig:
     time_offset_window: int = 0  # keyframe pairs in the online estimate, the latest (0: every pair since the start)
     time_offset_lag: int = 1  # a pair: a keyframe and the one this many keyframes before it
     time_offset_settle: int = 10  # a pair is read this many keyframes after its later keyframe entered the graph
+    # with the offset estimated: the keyframes of the first this many seconds are re-run once the estimate has
+    # converged (backend/offset_replay.py), s (0: never)
+    time_offset_replay_s: float = 20.0
+    time_offset_replay_sigma_s: float = 0.002  # ... once the online estimate's standard error is at most this, s
 
 
 @dataclass(frozen=True)

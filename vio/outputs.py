@@ -211,6 +211,9 @@ def camera_timing(stats: EstimatorStats, readout_source: str) -> dict[str, Any]:
         "time_offset_after_initialisation_s": to.after_initialisation_s,
         "time_offset_keyframes": to.num_keyframes,
         "time_offset_trace": [list(x) for x in to.trace],
+        "time_offset_replayed_keyframes": to.replayed_keyframes,
+        "time_offset_replayed_span_s": to.replayed_span_s,
+        "time_offset_replayed_from_s": None if to.replayed_from_s is None else list(to.replayed_from_s),
     }
 
 

@@ -233,6 +233,9 @@ class TimeOffsetEstimate:
     num_keyframes: int  # keyframes whose residuals went into the estimate
     readout_s: float  # rolling-shutter readout used (0: global shutter), s
     trace: tuple[tuple[float, float], ...] = ()  # (s since the first keyframe, the offset applied from then, s)
+    replayed_keyframes: int = 0  # keyframes re-run with the converged offset (backend/offset_replay.py; 0: none)
+    replayed_span_s: float | None = None  # the capture time they span, s
+    replayed_from_s: tuple[float, float] | None = None  # (min, max) offset the first pass had placed them with, s
 
 
 @dataclass(frozen=True)
