@@ -81,6 +81,27 @@ def test_time_offset_is_recovered_on_a_short_phone_capture(phone_capture, tmp_pa
     assert timing["time_offset_sigma_s"] > 0 and timing["time_offset_keyframes"] > 10
 
 
+@pytest.mark.slow
+def test_the_start_re_run_goes_through_the_pipeline(phone_capture, tmp_path):
+    """With the re-run's threshold loosened to what 4 s reach (3 ms standard error), the first keyframes are run
+    again with the converged offset: with the tracker's tracks and the re-identification describers kept, every
+    keyframe is in the outputs once, and run.json says what was re-run."""
+    truth = yaml.safe_load((phone_capture / "scene" / "scene.yaml").read_text())["camera"]
+    sets = [*QUIET, f"camera.readout_s={truth['readout_s']}", "camera.estimate_time_offset=true"]
+    summary = run_capture(
+        phone_capture, tmp_path, load_config(None, [*sets, "camera.time_offset_replay_sigma_s=0.003"])
+    ).summary
+    timing = summary["camera_timing"]
+    assert timing["time_offset_replayed_keyframes"] > 10 and timing["time_offset_replayed_span_s"] > 1.0
+    assert timing["time_offset_replayed_from_s"][0] == 0.0  # the start window was placed at the initial 0
+    assert abs(timing["time_offset_s"] - truth["timeshift_cam_imu_s"]) < 0.003
+    t = np.loadtxt(tmp_path / "trajectory.tum", ndmin=2)[:, 0]
+    assert len(t) == summary["num_states"] == summary["num_keyframes"] and np.all(np.diff(t) > 0)
+    frames = np.loadtxt(phone_capture / "mav0" / "cam0" / "data.csv", delimiter=",", usecols=0, dtype=np.int64)
+    first_placed_s = t[0] - frames[0] * 1e-9 - 0.5 * truth["readout_s"]  # the first keyframe is the first frame
+    assert abs(first_placed_s - truth["timeshift_cam_imu_s"]) < 0.005  # not at the initial 0 any more
+
+
 def test_phone_preset_estimates_the_offset_with_the_capture_readout():
     cfg = load_config(None, [], presets=["phone"])
     assert cfg.camera.estimate_time_offset and cfg.camera.readout_s < 0
