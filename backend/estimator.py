@@ -151,8 +151,9 @@ class VioEstimator:
     # ----------------------------------------------------------------- public
     def add_keyframe(self, t_ns: int, tracks: FeatureTracks, describe: Describe | None = None) -> list[StateEstimate]:
         """Add a keyframe (tracks in distorted pixels, `t_ns` the frame's camera time); returns the estimates
-        produced (several after the start). The keyframe's pose is placed in IMU time and each view moved to it
-        (backend/time_offset.py: the camera-IMU offset and the rolling shutter).
+        produced (several after the start; every keyframe's after the start re-run, backend/offset_replay.py). The
+        keyframe's pose is placed in IMU time and each view moved to it (backend/time_offset.py: the camera-IMU
+        offset and the rolling shutter).
 
         `describe` (frontend.descriptors.KeyframeDescriber.describe of the keyframe image) enables landmark
         re-identification (backend/reidentification.py); without it every new track is a new landmark.
