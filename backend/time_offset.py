@@ -22,7 +22,8 @@ is its estimate of the offset. The start window's pairs give the first estimate 
 are young: -2 to 18 ms for a true 15 on the 60 s orbit), applied until `MIN_ONLINE_PAIRS` pairs were read
 online; from then on the offset is the weighted mean (weight |w_j - dR^T w_i|^2) of the online pairs (the last
 `time_offset_window`, or all), applied to the keyframes that follow, at most `MAX_STEP_S` per keyframe. Its stated
-sigma is the standard error of that mean from the pairs' scatter.
+sigma is the standard error of that mean from the pairs' scatter. Once that error is small enough the estimator
+re-runs its first keyframes with the estimate (backend/offset_replay.py; `start_known` holds the offset meanwhile).
 """
 
 from __future__ import annotations
