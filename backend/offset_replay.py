@@ -4,9 +4,10 @@ The offset's estimate (backend/time_offset.py) needs about 10 s of motion to con
 estimate has young landmarks (-2 to 18 ms for a true 15 ms on the 60 s phone orbit), and the online estimate then
 moves the applied offset by at most 2 ms per keyframe. The keyframes of those first seconds keep the offset they
 were placed with: their inertial factors integrate the IMU over windows shifted by its error, and their poses are
-stamped at the wrong IMU time (at 0.3 m/s, 15 ms is 4.5 mm). Over the 60 s orbit with the true offset given, the
-ATE was lower on 4 of 5 seeds than with the estimate (docs/BENCHMARKS.md, "The estimator's half"), and after the
-first 15 s the two were alike: what is left to gain is in the first seconds.
+stamped at the wrong IMU time (at 0.3 m/s, 15 ms is 4.5 mm). Measured before this existed, over the 60 s orbit
+with the true offset given the ATE was lower on 4 of 5 seeds than with the estimate, and after the first 15 s the
+two were alike (docs/BENCHMARKS.md, "The estimator's half"); what the re-run gives on ten seeds is in "The start
+re-run once the offset is known".
 
 `OffsetReplay` keeps the inputs of the keyframes of the first `window_s` seconds (camera time, tracks, the
 re-identification describer, and the offset each was placed with). Once the online estimate's standard error is at
