@@ -211,12 +211,13 @@ class VioEstimator:
         if self._cpu_ms:
             self._cpu_ms[-1] += (time.process_time() - c0) * 1e3
         placed = [kf.placed_s for kf in kept]
-        self.timing.replayed(len(kept), (kept[-1].t_ns - kept[0].t_ns) * 1e-9, (min(placed), max(placed)))
+        span_s = (kept[-1].t_ns - kept[0].t_ns) * 1e-9
+        self.timing.replayed(len(kept), span_s, (min(placed), max(placed)))
         log.info(
             "time offset %.2f ms: the first %d keyframes (%.1f s) re-run (placed with %.2f to %.2f ms)",
             offset_s * 1e3,
             len(kept),
-            (kept[-1].t_ns - kept[0].t_ns) * 1e-9,
+            span_s,
             min(placed) * 1e3,
             max(placed) * 1e3,
         )
