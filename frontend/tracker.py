@@ -27,6 +27,7 @@ from collections import deque
 import cv2
 import numpy as np
 
+from frontend.anchor import AnchorAligner
 from frontend.detection import CornerResponse, detect_corners
 from vio.config import TrackerConfig
 from vio.errors import CalibrationError, CaptureError, ConfigError
@@ -45,7 +46,7 @@ _ESSENTIAL_METHODS = {
 }
 _MIN_POINTS_ESSENTIAL = 8  # fewer correspondences than this: no geometric check
 _KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-TIMING_SECTIONS = ("klt", "fb_check", "ncc", "ransac", "detect")
+TIMING_SECTIONS = ("klt", "fb_check", "ncc", "ransac", "anchor", "detect")
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -81,6 +82,7 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._ages = np.zeros(0, np.int64)
         self._next_id = 0
+        self._anchor = AnchorAligner(cfg) if cfg.anchor else None
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(int(cfg.essential_lag_frames), 1))
         self.num_frames = 0
         self.timings_s = dict.fromkeys(TIMING_SECTIONS, 0.0)  # accumulated wall time per section, s
@@ -104,6 +106,8 @@ class FeatureTracker:
         self._ids = np.zeros(0, np.int64)
         self._ages = np.zeros(0, np.int64)
         self._history.clear()
+        if self._anchor is not None:
+            self._anchor.keep(np.zeros(0, np.int64))
 
     def _tick(self, section: str, t0: float) -> float:
         t1 = time.perf_counter()
@@ -122,8 +126,13 @@ class FeatureTracker:
             )
         if self._prev_t_ns is not None and frame.t_ns <= self._prev_t_ns:
             raise CaptureError(f"frame t_ns={frame.t_ns} is not after the previous frame ({self._prev_t_ns})")
+        prepared = None
+        if self._anchor is not None:
+            t0 = time.perf_counter()
+            prepared = AnchorAligner.prepare(gray)
+            self._tick("anchor", t0)
         if self._prev_gray is not None and self._ids.size:
-            self._follow(gray)
+            self._follow(gray, prepared)
         t0 = time.perf_counter()
         want = self.cfg.max_features - self._ids.size
         if want > 0:
@@ -134,6 +143,8 @@ class FeatureTracker:
             self._ages = np.concatenate([self._ages, np.ones(n, np.int64)])
             self._next_id += n
             self.stats["detected"] += n
+            if self._anchor is not None:
+                self._anchor.add(prepared, new_uv)
         self._tick("detect", t0)
         self._history.append((self._ids.copy(), self._uv.copy()))
         self._prev_gray = gray
@@ -141,7 +152,7 @@ class FeatureTracker:
         self.num_frames += 1
         return FeatureTracks(int(frame.t_ns), self._ids.copy(), self._uv.copy(), int(frame.cam_id))
 
-    def _follow(self, gray: np.ndarray) -> None:
+    def _follow(self, gray: np.ndarray, prepared: np.ndarray | None) -> None:
         """KLT forward and back (forward-backward check), border, appearance (NCC) and essential-matrix checks."""
         cfg = self.cfg
         t0 = time.perf_counter()
@@ -189,8 +200,12 @@ class FeatureTracker:
             drop[i_cur[~far]] = True
             self.stats["essential_lag_rejected"] += int(drop.sum())
             idx = idx[~drop]
-        self._tick("ransac", t0)
+        t0 = self._tick("ransac", t0)
         self._uv = uv1[idx]
+        if self._anchor is not None:
+            self._anchor.keep(idx)
+            self._uv = self._anchor.align(prepared, self._uv)
+            self._tick("anchor", t0)
         self._ids = self._ids[idx]
         self._ages = self._ages[idx] + 1
 
