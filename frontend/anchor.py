@@ -30,14 +30,11 @@ _DAMPING = 1e-6  # relative Levenberg-Marquardt damping of the normal equations 
 _STOP_PX = 0.01  # iteration ends when no track's translation step exceeds this, px
 
 
-def _sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear samples of a float32 (H, W[, C]) image at (N, P, 2) positions: (N, P[, C]) float32."""
-    n, p = xy.shape[:2]
-    if n == 0:
-        return np.zeros((0, p) + image.shape[2:], np.float32)
-    mx = np.ascontiguousarray(xy[..., 0], np.float32)
-    my = np.ascontiguousarray(xy[..., 1], np.float32)
-    return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a float32 (H, W[, C]) image at (N, P) float32 positions x, y: (N, P[, C]) float32."""
+    if x.shape[0] == 0:
+        return np.zeros(x.shape + image.shape[2:], np.float32)
+    return cv2.remap(image, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 class AnchorAligner:
@@ -46,10 +43,16 @@ class AnchorAligner:
     def __init__(self, cfg: TrackerConfig) -> None:
         self.cfg = cfg
         r = int(cfg.anchor_radius_px)
-        d = np.arange(-r, r + 1, dtype=np.float64)
+        d = np.arange(-r - 1, r + 2, dtype=np.float64)  # one pixel of margin for the gradients
         dx, dy = np.meshgrid(d, d)
-        self._d = np.column_stack([dx.ravel(), dy.ravel()])  # (P, 2) template offsets, px
-        self._t = np.zeros((0, self._d.shape[0]), np.float32)  # (N, P) templates
+        self._d = np.column_stack([dx.ravel(), dy.ravel()])  # (Q, 2) sampled offsets, px, row-major
+        self._side = d.size
+        inner = np.zeros((d.size, d.size), bool)
+        inner[1:-1, 1:-1] = True
+        self._inner = inner.ravel()  # the (2r+1)^2 offsets of the template among them
+        self._dx = self._d[self._inner, 0].astype(np.float32)
+        self._dy = self._d[self._inner, 1].astype(np.float32)
+        self._t = np.zeros((0, int(self._inner.sum())), np.float32)  # (N, P) templates
         self._a = np.zeros((0, 2, 2))  # (N, 2, 2) affine warps, template to image
         self.stats = {"aligned": 0, "reanchored": 0}
 
@@ -58,11 +61,8 @@ class AnchorAligner:
 
     @staticmethod
     def prepare(gray: np.ndarray) -> np.ndarray:
-        """(H, W, 3) float32: the image and its x and y gradients (Scharr, per pixel), sampled together."""
-        g = gray.astype(np.float32)
-        gx = cv2.Scharr(g, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
-        gy = cv2.Scharr(g, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-        return np.dstack([g, gx, gy])
+        """The frame as float32, sampled bilinearly by the alignment."""
+        return gray.astype(np.float32)
 
     def keep(self, idx: np.ndarray) -> None:
         """Keep only the tracks at `idx` (the tracker's survivors), in that order."""
@@ -75,8 +75,17 @@ class AnchorAligner:
         self._t = np.vstack([self._t, t])
         self._a = np.concatenate([self._a, np.broadcast_to(np.eye(2), (t.shape[0], 2, 2))])
 
+    def _warped(self, image: np.ndarray, t: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """(N, S, S) float32 samples of the image at the offsets (with margin) under the warps t + a d."""
+        dx, dy = self._d[:, 0], self._d[:, 1]
+        x = (t[:, 0, None] + a[:, 0, 0, None] * dx + a[:, 0, 1, None] * dy).astype(np.float32)
+        y = (t[:, 1, None] + a[:, 1, 0, None] * dx + a[:, 1, 1, None] * dy).astype(np.float32)
+        return _sample(image, x, y).reshape(-1, self._side, self._side)
+
     def _templates(self, prepared: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        return _sample(prepared[..., 0], np.asarray(uv, np.float64).reshape(-1, 1, 2) + self._d[None])
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        s = self._warped(prepared, uv, np.broadcast_to(np.eye(2), (uv.shape[0], 2, 2)))
+        return np.ascontiguousarray(s[:, 1:-1, 1:-1]).reshape(uv.shape[0], -1)
 
     def align(self, prepared: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixels of the N live tracks aligned with their templates in this frame, from KLT's (N, 2) `uv`;
@@ -85,42 +94,60 @@ class AnchorAligner:
         n = uv.shape[0]
         if n == 0:
             return uv
-        d = self._d
+        dx, dy = self._dx, self._dy
         T = self._t
         a = self._a.copy()
         t = np.asarray(uv, np.float64).copy()
         gain = np.ones(n)
         bias = np.zeros(n)
         ok = np.ones(n, bool)
-        J = np.empty((n, 8, d.shape[0]), np.float32)  # rows: a11, a12, a21, a22, tx, ty, gain, bias
-        J[:, 6] = -T
-        J[:, 7] = -1.0
-        dx, dy = d[:, 0].astype(np.float32), d[:, 1].astype(np.float32)
         eye = np.eye(8)
+        act = np.arange(n)  # the tracks still iterating
         for _ in range(int(cfg.anchor_iterations)):
-            s = _sample(prepared, t[:, None, :] + d @ a.transpose(0, 2, 1))  # (N, P, 3)
-            gx, gy = s[..., 1], s[..., 2]
-            r = s[..., 0] - (gain[:, None] * T + bias[:, None]).astype(np.float32)
+            if act.size == 0:
+                break
+            m = act.size
+            aa = a[act]
+            s = self._warped(prepared, t[act], aa)
+            # gradients along the template's axes (central differences), then in the image: grad I = g_d A^-1
+            gu = 0.5 * (s[:, 1:-1, 2:] - s[:, 1:-1, :-2]).reshape(m, -1)
+            gv = 0.5 * (s[:, 2:, 1:-1] - s[:, :-2, 1:-1]).reshape(m, -1)
+            det = aa[:, 0, 0] * aa[:, 1, 1] - aa[:, 0, 1] * aa[:, 1, 0]
+            flat = ~(np.abs(det) > 1e-3)  # a collapsed warp (or NaN): the track fails, its step is void
+            ok[act[flat]] = False
+            det[flat] = 1.0
+            inv = (np.stack([aa[:, 1, 1], -aa[:, 0, 1], -aa[:, 1, 0], aa[:, 0, 0]], axis=1) / det[:, None]).reshape(
+                m, 2, 2
+            )
+            inv[flat] = np.eye(2)
+            inv = inv.astype(np.float32)
+            gx = gu * inv[:, 0, 0, None] + gv * inv[:, 1, 0, None]
+            gy = gu * inv[:, 0, 1, None] + gv * inv[:, 1, 1, None]
+            Ta = T[act]
+            r = s[:, 1:-1, 1:-1].reshape(m, -1) - (gain[act, None] * Ta + bias[act, None]).astype(np.float32)
+            J = np.empty((m, 8, dx.size), np.float32)  # rows: a11, a12, a21, a22, tx, ty, gain, bias
             J[:, 0], J[:, 1], J[:, 2], J[:, 3], J[:, 4], J[:, 5] = gx * dx, gx * dy, gy * dx, gy * dy, gx, gy
+            J[:, 6], J[:, 7] = -Ta, -1.0
             H = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
             H += (_DAMPING * np.trace(H, axis1=1, axis2=2)[:, None, None] + 1e-9) * eye
             g = -np.matmul(J, r[..., None])[..., 0].astype(np.float64)
             step = np.linalg.solve(H, g[..., None])[..., 0]
-            step[~ok] = 0.0
-            bad = ~np.isfinite(step).all(axis=1)
-            step[bad] = 0.0
-            ok &= ~bad
-            a += step[:, :4].reshape(n, 2, 2)
-            t += step[:, 4:6]
-            gain += step[:, 6]
-            bias += step[:, 7]
-            if float(np.abs(step[:, 4:6]).max(initial=0.0)) < _STOP_PX:
-                break
-        ncc = _zncc(T.astype(np.float64), _sample(prepared[..., 0], t[:, None, :] + d @ a.transpose(0, 2, 1)))
-        sv = np.linalg.svd(a, compute_uv=False) if n else np.zeros((0, 2))
+            good = np.isfinite(step).all(axis=1) & ~flat
+            ok[act[~good]] = False
+            step[~good] = 0.0
+            a[act] += step[:, :4].reshape(m, 2, 2)
+            t[act] += step[:, 4:6]
+            gain[act] += step[:, 6]
+            bias[act] += step[:, 7]
+            near = np.linalg.norm(t[act] - uv[act], axis=1) <= cfg.anchor_max_shift_px
+            act = act[good & near & (np.abs(step[:, 4:6]).max(axis=1) >= _STOP_PX)]
+        sv = np.linalg.svd(a, compute_uv=False)
         stretch = float(cfg.anchor_max_stretch)
         ok &= np.isfinite(t).all(axis=1) & (np.linalg.norm(t - uv, axis=1) <= cfg.anchor_max_shift_px)
-        ok &= (ncc >= cfg.anchor_min_ncc) & (sv[:, 0] <= stretch) & (sv[:, 1] >= 1.0 / stretch)
+        ok &= (sv[:, 0] <= stretch) & (sv[:, 1] >= 1.0 / stretch)
+        ok[ok] &= _zncc(T[ok], self._warped(prepared, t[ok], a[ok])[:, 1:-1, 1:-1].reshape(-1, T.shape[1])) >= (
+            cfg.anchor_min_ncc
+        )
         out = np.where(ok[:, None], t, uv)
         self._a = np.where(ok[:, None, None], a, np.eye(2))
         fail = np.flatnonzero(~ok)
@@ -133,6 +160,7 @@ class AnchorAligner:
 
 def _zncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N,) zero-mean normalized cross-correlation of (N, P) rows."""
+    a = a.astype(np.float64)
     b = b.astype(np.float64)
     a = a - a.mean(axis=1, keepdims=True)
     b = b - b.mean(axis=1, keepdims=True)
