@@ -85,7 +85,7 @@ class AnchorAligner:
     def _templates(self, prepared: np.ndarray, uv: np.ndarray) -> np.ndarray:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         s = self._warped(prepared, uv, np.broadcast_to(np.eye(2), (uv.shape[0], 2, 2)))
-        return np.ascontiguousarray(s[:, 1:-1, 1:-1]).reshape(uv.shape[0], -1)
+        return np.ascontiguousarray(s[:, 1:-1, 1:-1]).reshape(uv.shape[0], self._t.shape[1])
 
     def align(self, prepared: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixels of the N live tracks aligned with their templates in this frame, from KLT's (N, 2) `uv`;

@@ -96,8 +96,11 @@ def test_keep_follows_the_trackers_survivors():
     al = AnchorAligner(replace(TrackerConfig(), anchor=True))
     prepared = AnchorAligner.prepare(_frame(tex, 0))
     uv = np.array([[100.0, 100.0], [200.0, 200.0], [300.0, 300.0]])
+    al.add(prepared, np.zeros((0, 2)))  # a frame without new corners
     al.add(prepared, uv)
     al.keep(np.array([2, 0]))
     assert len(al) == 2
     out = al.align(prepared, uv[[2, 0]] + 0.3)
     assert np.abs(out - uv[[2, 0]]).max() < 0.05
+    al.keep(np.zeros(0, np.int64))
+    assert len(al) == 0 and al.align(prepared, np.zeros((0, 2))).shape == (0, 2)
