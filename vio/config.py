@@ -37,10 +37,11 @@ class TrackerConfig:
     essential_method: str = "usac_magsac"  # usac_magsac | usac_accurate | usac_default | ransac | lmeds | none
     essential_min_flow_px: float = 1.0  # skip the essential-matrix check below this median flow, px
     essential_lag_frames: int = 5  # also check against the frame this many frames back (slow drift); 0/1: off
-    # each track re-aligned every frame with the patch it began with (affine + gain/bias; frontend/anchor.py)
-    anchor: bool = False
+    # each track re-aligned every frame with the patch it began with (affine + gain/bias; frontend/anchor.py): no
+    # drift with age (docs/BENCHMARKS.md, "Anchored tracks"); false: frame-to-frame KLT only
+    anchor: bool = True
     anchor_radius_px: int = 7  # half-size of the template, px
-    anchor_iterations: int = 8  # Gauss-Newton iterations per frame at most
+    anchor_iterations: int = 4  # Gauss-Newton iterations per frame at most (8 gave the same error, 1.2 ms more)
     anchor_max_shift_px: float = 2.0  # an alignment further than this from KLT's pixel fails, px
     anchor_min_ncc: float = 0.9  # an alignment correlating less than this with the template fails
     anchor_max_stretch: float = 1.5  # an affine that stretches or shrinks the template more than this fails
@@ -80,7 +81,9 @@ class ImuConfig:
 @dataclass(frozen=True)
 class EstimatorConfig:
     mode: str = "visual_inertial"  # visual_inertial | vision_only (projection factors only; scale unknown, Sim3 only)
-    pixel_sigma: float = 1.0  # projection noise, px (of a view at the start of its track's run; see pixel_sigma_per_s)
+    # projection noise, px (of a view at the start of its track's run; see pixel_sigma_per_s); 0.5 since the tracker's
+    # anchored tracks (about 0.1 px median error at every age); with frame-to-frame KLT alone 1 px was the default
+    pixel_sigma: float = 0.5
     # growth of the projection noise with the view's age (time since its track's run of keyframe views began), px/s;
     # 0: every view has pixel_sigma (backend/factors.py PixelNoise)
     pixel_sigma_per_s: float = 0.0
