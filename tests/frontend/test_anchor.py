@@ -104,3 +104,38 @@ def test_keep_follows_the_trackers_survivors():
     assert np.abs(out - uv[[2, 0]]).max() < 0.05
     al.keep(np.zeros(0, np.int64))
     assert len(al) == 0 and al.align(prepared, np.zeros((0, 2))).shape == (0, 2)
+
+
+def _temple_residuals(anchor: bool) -> np.ndarray:
+    """Reprojection residuals (px) of the tracks seen in at least 8 of the real templeRing views, each triangulated
+    (linear, all its views) from the dataset's calibrated cameras."""
+    from tests.frontend.test_tracker import _middlebury_views
+
+    views, cam = _middlebury_views()
+    trk = FeatureTracker(cam, replace(TrackerConfig(), anchor=anchor))
+    seen: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for k, (_, img, K, R, t) in enumerate(views):
+        tr = trk.track(Frame(k * 100_000_000, 0, img))
+        P = K @ np.hstack([R, t.reshape(3, 1)])
+        for i, uv in zip(tr.ids.tolist(), tr.uv, strict=True):
+            seen.setdefault(i, []).append((P, uv))
+    res = []
+    for obs in seen.values():
+        if len(obs) < 8:
+            continue
+        A = np.vstack([np.vstack([uv[0] * P[2] - P[0], uv[1] * P[2] - P[1]]) for P, uv in obs])
+        X = np.linalg.svd(A)[2][-1]
+        for P, uv in obs:
+            p = P @ X
+            res.append(np.linalg.norm(p[:2] / p[2] - uv))
+    return np.array(res)
+
+
+def test_anchored_tracks_fit_the_real_temple_cameras_better():
+    """Real pixels (Middlebury templeRing, 19 views 7.7 deg apart, known cameras): tracks seen in 8 or more views
+    reproject closer to their triangulated point when anchored (measured: median 0.157 px against 0.191 px)."""
+    plain = _temple_residuals(False)
+    anchored = _temple_residuals(True)
+    assert anchored.size > 300 and plain.size > 300
+    assert np.median(anchored) < 0.9 * np.median(plain)
+    assert np.median(anchored) < 0.2
