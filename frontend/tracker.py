@@ -1,4 +1,4 @@
-"""Frame-to-frame feature tracking: pyramidal KLT with forward-backward, appearance and epipolar checks.
+"""Feature tracking: pyramidal KLT with forward-backward, appearance and epipolar checks, anchored to first patches.
 
 Pixel coordinates are in the *distorted* image (what the camera delivered), x right, y down. Per frame:
 1. pyramidal Lucas-Kanade from the previous frame, then back again: a track whose round trip misses its start by
@@ -11,7 +11,9 @@ Pixel coordinates are in the *distorted* image (what the camera delivered), x ri
    the previous frame and then against the frame `essential_lag_frames` back (a wider baseline exposes slow
    drift that no single frame step shows). When the median flow is below `essential_min_flow_px` the views have
    (almost) no parallax, the essential matrix is degenerate and that check is skipped;
-4. new Shi-Tomasi corners (grid-bucketed, away from live tracks, sub-pixel refined; `frontend.detection`) top
+4. with `anchor` (the default), each survivor is re-aligned with the patch it began with (`frontend.anchor`: an
+   affine warp with gain and bias), so its error does not add up frame after frame; KLT's next step starts there;
+5. new Shi-Tomasi corners (grid-bucketed, away from live tracks, sub-pixel refined; `frontend.detection`) top
    the set up to `max_features`.
 
 Each call to `track` returns every live track: survivors of the previous frame first (in their previous order),
@@ -98,6 +100,11 @@ class FeatureTracker:
     def ages(self) -> np.ndarray:
         """(N,) int64: for each track last returned, the number of frames it has been seen in (1 = new)."""
         return self._ages.copy()
+
+    def anchor_stats(self) -> dict[str, int] | None:
+        """Views aligned with their template, and views re-anchored (the alignment failed), so far; None without
+        anchoring."""
+        return None if self._anchor is None else dict(self._anchor.stats)
 
     def reset(self) -> None:
         """Forget all tracks (ids keep counting up, so they stay unique)."""

@@ -35,7 +35,8 @@ def track_capture(
     Summary keys: `frames`, `rows` (observations written), `tracks` (distinct ids), `mean_tracks_per_frame`,
     `min_tracks_per_frame`, `wall_s`, `fps`, `realtime_factor` (capture duration / wall time; 0 for one frame),
     `timings_s` (wall time per section: open (reading the capture's index, calibration, IMU), decode (images),
-    klt, fb_check, ncc, ransac, detect, write), `stats` (tracker counters).
+    klt, fb_check, ncc, ransac, anchor, detect, write), `stats` (tracker counters, with the anchor's aligned and
+    re-anchored views).
     """
     from frontend.tracker import FeatureTracker
     from vio.readers import open_capture
@@ -85,7 +86,7 @@ def track_capture(
         "fps": capture.num_frames / wall_s if wall_s > 0 else 0.0,
         "realtime_factor": duration_s / wall_s if wall_s > 0 else 0.0,
         "timings_s": timings,
-        "stats": dict(tracker.stats),
+        "stats": dict(tracker.stats) | (tracker.anchor_stats() or {}),
     }
     log.info(
         "tracked %d frames at %.1f fps (%.1fx real time), %.1f tracks per frame -> %s; ms per frame: %s",
