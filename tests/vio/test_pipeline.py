@@ -38,7 +38,7 @@ def test_outputs_are_complete_and_consistent(eqvio_run):
     assert 0.0 < run["scale"]["sigma_rel"] < 0.05 and len(run["scale"]["pairs"]) >= 1
     assert all(p["distance_m"] > 0.1 and p["sigma_m"] > 0.0 for p in run["scale"]["pairs"])
     assert run["scale"]["excitation"] > 0.0 and "advice" in run["scale"]  # the capture advice (issue 15)
-    assert len(run["keyframe_ms"]["per_keyframe"]) > 0 and run["config"]["estimator"]["pixel_sigma"] == 1.0
+    assert len(run["keyframe_ms"]["per_keyframe"]) > 0 and run["config"]["estimator"]["pixel_sigma"] == 0.5
     states = np.loadtxt(out / "states.csv", delimiter=",", skiprows=1)
     assert states.shape == (summary["num_states"], 17) and np.isfinite(states).all()
     assert np.allclose(np.linalg.norm(states[:, 4:8], axis=1), 1.0, atol=1e-6)
