@@ -49,10 +49,10 @@ class AnchorAligner:
         self._side = d.size
         inner = np.zeros((d.size, d.size), bool)
         inner[1:-1, 1:-1] = True
-        self._inner = inner.ravel()  # the (2r+1)^2 offsets of the template among them
-        self._dx = self._d[self._inner, 0].astype(np.float32)
-        self._dy = self._d[self._inner, 1].astype(np.float32)
-        self._t = np.zeros((0, int(self._inner.sum())), np.float32)  # (N, P) templates
+        inner = inner.ravel()  # the (2r+1)^2 offsets of the template among them
+        self._dx = self._d[inner, 0].astype(np.float32)
+        self._dy = self._d[inner, 1].astype(np.float32)
+        self._t = np.zeros((0, int(inner.sum())), np.float32)  # (N, P) templates
         self._a = np.zeros((0, 2, 2))  # (N, 2, 2) affine warps, template to image
         self.stats = {"aligned": 0, "reanchored": 0}
 
@@ -145,9 +145,8 @@ class AnchorAligner:
         stretch = float(cfg.anchor_max_stretch)
         ok &= np.isfinite(t).all(axis=1) & (np.linalg.norm(t - uv, axis=1) <= cfg.anchor_max_shift_px)
         ok &= (sv[:, 0] <= stretch) & (sv[:, 1] >= 1.0 / stretch)
-        ok[ok] &= _zncc(T[ok], self._warped(prepared, t[ok], a[ok])[:, 1:-1, 1:-1].reshape(-1, T.shape[1])) >= (
-            cfg.anchor_min_ncc
-        )
+        fitted = self._warped(prepared, t[ok], a[ok])[:, 1:-1, 1:-1].reshape(-1, T.shape[1])
+        ok[ok] &= zncc_rows(T[ok].astype(np.float64), fitted.astype(np.float64)) >= cfg.anchor_min_ncc
         out = np.where(ok[:, None], t, uv)
         self._a = np.where(ok[:, None, None], a, np.eye(2))
         fail = np.flatnonzero(~ok)
@@ -158,10 +157,9 @@ class AnchorAligner:
         return out
 
 
-def _zncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N,) zero-mean normalized cross-correlation of (N, P) rows."""
-    a = a.astype(np.float64)
-    b = b.astype(np.float64)
+def zncc_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) zero-mean normalized cross-correlation of (N, P) rows (1: identical up to gain and offset), computed in
+    the inputs' precision."""
     a = a - a.mean(axis=1, keepdims=True)
     b = b - b.mean(axis=1, keepdims=True)
     den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))

@@ -29,7 +29,7 @@ from collections import deque
 import cv2
 import numpy as np
 
-from frontend.anchor import AnchorAligner
+from frontend.anchor import AnchorAligner, zncc_rows
 from frontend.detection import CornerResponse, detect_corners
 from vio.config import TrackerConfig
 from vio.errors import CalibrationError, CaptureError, ConfigError
@@ -263,7 +263,4 @@ def patch_ncc(gray0: np.ndarray, uv0: np.ndarray, gray1: np.ndarray, uv1: np.nda
         return np.zeros(0)
     a = sample_patches(gray0, uv0, radius).reshape(uv0.shape[0], -1)
     b = sample_patches(gray1, uv1, radius).reshape(uv1.shape[0], -1)
-    a = a - a.mean(axis=1, keepdims=True)
-    b = b - b.mean(axis=1, keepdims=True)
-    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
-    return np.where(den > 0, (a * b).sum(axis=1) / np.maximum(den, 1e-12), 0.0)
+    return zncc_rows(a, b)
