@@ -160,7 +160,8 @@ class FeatureTracker:
         return FeatureTracks(int(frame.t_ns), self._ids.copy(), self._uv.copy(), int(frame.cam_id))
 
     def _follow(self, gray: np.ndarray, prepared: np.ndarray | None) -> None:
-        """KLT forward and back (forward-backward check), border, appearance (NCC) and essential-matrix checks."""
+        """KLT forward and back (forward-backward check), border, appearance (NCC) and essential-matrix checks, then
+        the survivors aligned with their first patches (with `anchor`)."""
         cfg = self.cfg
         t0 = time.perf_counter()
         p0 = self._uv.astype(np.float32).reshape(-1, 1, 2)

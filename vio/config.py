@@ -82,7 +82,7 @@ class ImuConfig:
 class EstimatorConfig:
     mode: str = "visual_inertial"  # visual_inertial | vision_only (projection factors only; scale unknown, Sim3 only)
     # projection noise, px (of a view at the start of its track's run; see pixel_sigma_per_s); 0.5 since the tracker's
-    # anchored tracks (about 0.1 px median error at every age); with frame-to-frame KLT alone 1 px was the default
+    # anchored tracks (about 0.1 px median error up to 80 frames old); with frame-to-frame KLT 1 px was the default
     pixel_sigma: float = 0.5
     # growth of the projection noise with the view's age (time since its track's run of keyframe views began), px/s;
     # 0: every view has pixel_sigma (backend/factors.py PixelNoise)
