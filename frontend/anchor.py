@@ -88,15 +88,18 @@ class AnchorAligner:
         return np.ascontiguousarray(s[:, 1:-1, 1:-1]).reshape(uv.shape[0], self._t.shape[1])
 
     def align(self, prepared: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(N, 2) pixels of the N live tracks aligned with their templates in this frame, from KLT's (N, 2) `uv`;
-        the tracks that fail keep `uv` and are re-anchored there."""
+        """(N, 2) pixels of the first N live tracks (all, or the older ones before new detections) aligned with
+        their templates in this frame, from KLT's (N, 2) `uv`; the tracks that fail keep `uv` and are re-anchored
+        there."""
         cfg = self.cfg
         n = uv.shape[0]
         if n == 0:
             return uv
+        if n > len(self):
+            raise ValueError(f"{n} pixels to align but {len(self)} templates")
         dx, dy = self._dx, self._dy
-        T = self._t
-        a = self._a.copy()
+        T = self._t[:n]
+        a = self._a[:n].copy()
         t = np.asarray(uv, np.float64).copy()
         gain = np.ones(n)
         bias = np.zeros(n)
@@ -148,7 +151,7 @@ class AnchorAligner:
         fitted = self._warped(prepared, t[ok], a[ok])[:, 1:-1, 1:-1].reshape(-1, T.shape[1])
         ok[ok] &= zncc_rows(T[ok].astype(np.float64), fitted.astype(np.float64)) >= cfg.anchor_min_ncc
         out = np.where(ok[:, None], t, uv)
-        self._a = np.where(ok[:, None, None], a, np.eye(2))
+        self._a[:n] = np.where(ok[:, None, None], a, np.eye(2))
         fail = np.flatnonzero(~ok)
         if fail.size:
             self._t[fail] = self._templates(prepared, uv[fail])

@@ -31,7 +31,8 @@ import numpy as np
 
 from frontend.anchor import AnchorAligner, zncc_rows
 from frontend.detection import CornerResponse, detect_corners
-from vio.config import TrackerConfig
+from frontend.keyframes import KeyframeSelector
+from vio.config import KeyframeConfig, TrackerConfig
 from vio.errors import CalibrationError, CaptureError, ConfigError
 from vio.records import CameraCalib, FeatureTracks, Frame
 
@@ -66,7 +67,10 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 class FeatureTracker:
     """Tracks corners of one camera through consecutive frames (call `track` once per frame, in time order)."""
 
-    def __init__(self, camera: CameraCalib, cfg: TrackerConfig) -> None:
+    def __init__(self, camera: CameraCalib, cfg: TrackerConfig, keyframes: KeyframeConfig | None = None) -> None:
+        """With `keyframes`, the tracker also picks the keyframes (`frontend.keyframes`, on KLT's pixels before the
+        alignment when `cfg.anchor_keyframes_only`) and says after each `track` whether the frame is one
+        (`keyframe`); only then can the alignment be kept to keyframes."""
         if cfg.essential_method not in _ESSENTIAL_METHODS:
             raise ConfigError(
                 f"config tracker.essential_method: {cfg.essential_method!r} is not one of "
@@ -85,6 +89,9 @@ class FeatureTracker:
         self._ages = np.zeros(0, np.int64)
         self._next_id = 0
         self._anchor = AnchorAligner(cfg) if cfg.anchor else None
+        self._selector = KeyframeSelector(keyframes) if keyframes is not None else None
+        self._align_late = self._anchor is not None and self._selector is not None and cfg.anchor_keyframes_only
+        self.keyframe: bool | None = None  # the last frame tracked is a keyframe (None: no keyframe selection)
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(int(cfg.essential_lag_frames), 1))
         self.num_frames = 0
         self.timings_s = dict.fromkeys(TIMING_SECTIONS, 0.0)  # accumulated wall time per section, s
@@ -140,6 +147,7 @@ class FeatureTracker:
             self._tick("anchor", t0)
         if self._prev_gray is not None and self._ids.size:
             self._follow(gray, prepared)
+        n_old = self._ids.size
         t0 = time.perf_counter()
         want = self.cfg.max_features - self._ids.size
         if want > 0:
@@ -153,6 +161,12 @@ class FeatureTracker:
             if self._anchor is not None:
                 self._anchor.add(prepared, new_uv)
         self._tick("detect", t0)
+        if self._selector is not None:
+            self.keyframe = self._selector.consider(FeatureTracks(int(frame.t_ns), self._ids, self._uv))
+            if self.keyframe and self._align_late and n_old:
+                t0 = time.perf_counter()
+                self._uv[:n_old] = self._anchor.align(prepared, self._uv[:n_old])
+                self._tick("anchor", t0)
         self._history.append((self._ids.copy(), self._uv.copy()))
         self._prev_gray = gray
         self._prev_t_ns = frame.t_ns
@@ -212,7 +226,8 @@ class FeatureTracker:
         self._uv = uv1[idx]
         if self._anchor is not None:
             self._anchor.keep(idx)
-            self._uv = self._anchor.align(prepared, self._uv)
+            if not self._align_late:
+                self._uv = self._anchor.align(prepared, self._uv)
             self._tick("anchor", t0)
         self._ids = self._ids[idx]
         self._ages = self._ages[idx] + 1

@@ -45,6 +45,9 @@ class TrackerConfig:
     anchor_max_shift_px: float = 2.0  # an alignment further than this from KLT's pixel fails, px
     anchor_min_ncc: float = 0.9  # an alignment correlating less than this with the template fails
     anchor_max_stretch: float = 1.5  # an affine that stretches or shrinks the template more than this fails
+    # align only the keyframes' views (the tracker then picks the keyframes, on KLT's pixels): between keyframes,
+    # which the estimator does not read, frame-to-frame KLT only; its few frames of drift are undone at the next one
+    anchor_keyframes_only: bool = False
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 else.
 
 Frames go through the OpenCV tracker (or precomputed tracks, e.g. gtsam's eqvio file), the keyframe selector
-picks keyframes, the estimator preintegrates the IMU between them and updates the smoother; estimates go to the
+(`frontend.keyframes`: the tracker's own, or here for precomputed tracks) picks keyframes, the estimator preintegrates the IMU between them and updates the smoother; estimates go to the
 sinks (the rerun viewer is one, built by the command line) and, at the end, `vio.outputs` writes trajectory.tum,
 states.csv, landmarks.ply and run.json in `out`. A tracking loss, a solver exception or a frame that fails to decode
 does not end the run; `vio.health` reports them in run.json as spans with a cause, and the run's status.
@@ -92,13 +92,14 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-# (frame or None, tracks, track ages in frames (N,), the new tracks' colours (ids, RGB) or None without images)
-Tracked = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.ndarray] | None]
+# (frame or None, tracks, track ages in frames (N,), the new tracks' colours (ids, RGB) or None without images,
+# whether the frame is a keyframe: the tracker's choice, or None for the capture's own tracks)
+Tracked = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.ndarray] | None, bool | None]
 
 
 def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor, viewer: bool) -> Iterator[Tracked]:
-    """Yield (frame or None, tracks, ages, the new tracks' colours or None) for every frame: the capture's own
-    tracks, or the tracker's, in a process of its own when `cfg.run.tracker_process` and the capture can be opened
+    """Yield (frame or None, tracks, ages, the new tracks' colours or None, keyframe or None) for every frame: the
+    capture's own tracks (the keyframes left to the caller), or the tracker's (with its keyframes), in a process of its own when `cfg.run.tracker_process` and the capture can be opened
     again there (`Capture.reopen`, `vio.track_worker`: frames without an image then are the non-keyframes, unless a
     `viewer` needs them all). A frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
     if cap.tracks is not None:
@@ -106,7 +107,7 @@ def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMoni
         first_seen: dict[int, int] = {}
         for i, tr in enumerate(cap.tracks[:stop]):
             ages = np.array([i - first_seen.setdefault(int(j), i) for j in tr.ids], np.int64)
-            yield None, velocity.add(tr), ages, None
+            yield None, velocity.add(tr), ages, None, None
         return
     if cfg.run.tracker_process and cap.reopen is not None:
         from vio.track_worker import tracked_in_worker
@@ -203,7 +204,7 @@ def _run(
     t_first = t_last = None
     try:
         frames = _frames_and_tracks(cap, cfg, stop, monitor, bool(sinks))
-        for n_done, (frame, tracks, ages, new_colours) in enumerate(frames, start=1):
+        for n_done, (frame, tracks, ages, new_colours, keyframe) in enumerate(frames, start=1):
             t_first = tracks.t_ns if t_first is None else t_first
             t_last = tracks.t_ns
             monitor.frame(tracks.t_ns, len(tracks.ids))
@@ -212,7 +213,7 @@ def _run(
             if frame is not None:
                 for sink in sinks:
                     sink.on_frame(frame, tracks.ids, tracks.uv, ages)
-            if selector.consider(tracks):
+            if (selector.consider(tracks) if keyframe is None else keyframe):
                 n_kf += 1
                 try:
                     produced = _add_keyframe(est, frame, tracks, cfg)

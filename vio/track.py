@@ -44,7 +44,7 @@ def track_capture(
     t_start = time.perf_counter()
     capture = open_capture(capture_path, calib, needs=("camera",))
     assert capture.camera is not None  # checked by open_capture
-    tracker = FeatureTracker(capture.camera, cfg.tracker)
+    tracker = FeatureTracker(capture.camera, cfg.tracker, cfg.keyframes)  # its keyframes as `vio run` picks them
     open_s = time.perf_counter() - t_start
     decode_s = write_s = 0.0
     rows = 0

@@ -2,15 +2,16 @@
 
 A thread does not overlap the tracker with the estimator (gtsam's wrapper keeps the GIL through an iSAM2 update:
 docs/BENCHMARKS.md, "The two cores, measured"); a second interpreter does. The worker opens the same capture, decodes
-and tracks every frame with the same code as the single-process path (`vio.tracking.tracked_frames`), runs its own
-copy of the keyframe selector (it depends on the tracks only) and samples each new track's colour (a thread of its
+and tracks every frame with the same code as the single-process path (`vio.tracking.tracked_frames`, whose tracker
+also picks the keyframes) and samples each new track's colour (a thread of its
 own decodes the next `PREFETCH_FRAMES` images meanwhile, on whatever core the estimator leaves idle), and sends per
 frame: the tracks, their ages, the new colours and the image only where the estimator needs it (keyframes, for the
 re-identification's descriptors; every frame when a viewer is attached). The pipe is enlarged so that it holds a
 few keyframes while the estimator solves. Results are the single-process path's, frame for frame.
 
 Protocol (length-prefixed pickles, `vio.pipes`): in, one ((capture path, calibration path, options), config,
-frames, every image?); out, per frame ("frame", t_ns, image or None, tracks, ages, new colour ids, their RGB) or
+frames, every image?); out, per frame ("frame", t_ns, image or None, tracks, ages, new colour ids, their RGB,
+keyframe?) or
 ("skip", t_ns, frame index, reason), then ("end",); an error is ("error", one line).
 """
 
@@ -37,7 +38,7 @@ def tracked_in_worker(
     reopen: tuple[str, str | None, dict[str, Any]], cfg: Any, stop: int, every_image: bool
 ) -> Iterator[tuple[str, Any]]:
     """Start the worker and yield what `vio.tracking.tracked_frames` yields there: ("frame", (frame or None, tracks,
-    ages, new colours)) or ("skip", (t_ns, frame index, reason)). Raises VioError when the
+    ages, new colours, keyframe?)) or ("skip", (t_ns, frame index, reason)). Raises VioError when the
     worker reports an error or stops; the worker is killed when the caller stops early."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "vio.track_worker"],
@@ -63,9 +64,9 @@ def tracked_in_worker(
             if msg[0] == "skip":
                 yield "skip", msg[1:]
                 continue
-            _, t_ns, image, tracks, ages, cids, crgb = msg
+            _, t_ns, image, tracks, ages, cids, crgb, keyframe = msg
             frame = None if image is None else Frame(t_ns, 0, image)
-            yield "frame", (frame, tracks, ages, (cids, crgb))
+            yield "frame", (frame, tracks, ages, (cids, crgb), keyframe)
         proc.wait()
     finally:
         if proc.poll() is None:
@@ -76,7 +77,6 @@ def tracked_in_worker(
 def main() -> int:
     import cv2
 
-    from frontend.keyframes import KeyframeSelector
     from vio.readers import open_capture
     from vio.tracking import tracked_frames
 
@@ -86,15 +86,13 @@ def main() -> int:
     (path, calib, options), cfg, stop, every_image = recv(stdin)
     try:
         cap = open_capture(path, calib, **options)
-        selector = KeyframeSelector(cfg.keyframes)
         for kind, payload in tracked_frames(cap, cfg, stop, PREFETCH_FRAMES):
             if kind == "skip":
                 send(stdout, ("skip", *payload))
                 continue
-            frame, tracks, ages, (ids, rgb) = payload
-            keyframe = selector.consider(tracks)
+            frame, tracks, ages, (ids, rgb), keyframe = payload
             image = frame.image if (every_image or keyframe) else None
-            send(stdout, ("frame", tracks.t_ns, image, tracks, ages, ids, rgb))
+            send(stdout, ("frame", tracks.t_ns, image, tracks, ages, ids, rgb, keyframe))
     except VioError as exc:
         send(stdout, ("error", str(exc)))
         return 1

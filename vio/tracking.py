@@ -30,7 +30,8 @@ def image_of(cap: Capture, i: int) -> np.ndarray:
 
 def tracked_frames(cap: Capture, cfg: Config, stop: int, prefetch: int = 0) -> Iterator[tuple[str, Any]]:
     """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames, the new tracks'
-    colours (ids, RGB))) per frame, or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to decode
+    colours (ids, RGB), whether the frame is a keyframe)) per frame (the tracker picks the keyframes:
+    `frontend.keyframes` on its tracks), or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to decode
     (or has the wrong size). With `prefetch` > 0 a thread decodes the images up to that many frames ahead and
     computes what corner detection needs from the image alone (`frontend.detection.corner_response`), the same
     numbers the tracker would compute (`ahead`); only for a capture that nothing else reads meanwhile (the
@@ -39,7 +40,7 @@ def tracked_frames(cap: Capture, cfg: Config, stop: int, prefetch: int = 0) -> I
     from frontend.tracker import FeatureTracker, to_gray
 
     velocity = TrackVelocity()  # each track's image velocity (the estimator's rolling-shutter and offset terms)
-    tracker = FeatureTracker(cap.camera, cfg.tracker)
+    tracker = FeatureTracker(cap.camera, cfg.tracker, cfg.keyframes)
     colours = TrackColours()
 
     def load(i: int) -> tuple[np.ndarray, Any]:  # what does not depend on the tracks, ahead in the thread
@@ -58,7 +59,7 @@ def tracked_frames(cap: Capture, cfg: Config, stop: int, prefetch: int = 0) -> I
         image, response = (item, None) if prefetch <= 0 else item
         frame = Frame(t_ns, 0, image)
         tracks = velocity.add(tracker.track(frame, response))
-        yield "frame", (frame, tracks, tracker.ages(), colours.see(frame, tracks))
+        yield "frame", (frame, tracks, tracker.ages(), colours.see(frame, tracks), bool(tracker.keyframe))
 
 
 def images(cap: Capture, stop: int, prefetch: int = 0) -> Iterator[np.ndarray | CaptureError]:

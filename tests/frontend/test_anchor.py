@@ -9,7 +9,7 @@ import numpy as np
 
 from frontend.anchor import AnchorAligner
 from frontend.tracker import FeatureTracker
-from vio.config import TrackerConfig
+from vio.config import KeyframeConfig, TrackerConfig
 from vio.records import CameraCalib, Frame
 
 W, H = 640, 480
@@ -37,19 +37,27 @@ def _frame(tex: np.ndarray, k: int) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def _errors_by_age(anchor: bool, frames: int = 60) -> tuple[dict[int, list[float]], FeatureTracker]:
-    """Each track's pixel against the true image of the texture point under its first pixel, by age in frames."""
+def _errors_by_age(
+    anchor: bool, frames: int = 60, keyframes: KeyframeConfig | None = None, keyframes_only: bool = False
+) -> tuple[dict[int, list[float]], FeatureTracker]:
+    """Each track's pixel against the true image of the texture point under its first pixel, by age in frames
+    (with `keyframes_only`, aligned and counted in the tracker's keyframes only)."""
     tex = _texture()
     cam = CameraCalib(W, H, 450.0, 450.0, W / 2 - 0.5, H / 2 - 0.5, np.zeros(4), np.eye(4))
-    trk = FeatureTracker(cam, replace(TrackerConfig(), anchor=anchor))
+    trk = FeatureTracker(cam, replace(TrackerConfig(), anchor=anchor, anchor_keyframes_only=keyframes_only), keyframes)
     born: dict[int, tuple[int, np.ndarray]] = {}
     errors: dict[int, list[float]] = {}
     for k in range(frames):
+        aligned = trk.anchor_stats()["aligned"] if anchor else 0
         tr = trk.track(Frame(k * 50_000_000, 0, _frame(tex, k)))
+        if keyframes_only and not trk.keyframe:
+            assert trk.anchor_stats()["aligned"] == aligned  # no alignment between keyframes
         m = _warp(k)
         for i, uv in zip(tr.ids.tolist(), tr.uv, strict=True):
             if i not in born:
                 born[i] = (k, np.linalg.solve(m, np.r_[uv, 1.0])[:2])
+                continue
+            if keyframes_only and not trk.keyframe:
                 continue
             k0, x = born[i]
             errors.setdefault(k - k0, []).append(float(np.linalg.norm((m @ np.r_[x, 1.0])[:2] - uv)))
@@ -69,6 +77,35 @@ def test_anchored_tracks_do_not_drift_with_age():
     assert np.median(anchored[1]) < 0.1
     assert trk._anchor.stats["aligned"] > 0.95 * sum(len(es) for es in anchored.values())
     assert trk.timings_s["anchor"] > 0.0
+
+
+def test_keyframes_only_alignment_holds_the_point_in_keyframes():
+    # a keyframe every 4th frame (time only): KLT alone in between, its drift undone at each keyframe
+    kf = KeyframeConfig(min_parallax_px=1e9, min_survival=0.0, max_interval_s=0.2, min_interval_s=0.05)
+    errors, trk = _errors_by_age(True, keyframes=kf, keyframes_only=True)
+    old = [e for age, es in errors.items() if age >= 40 for e in es]
+    assert len(old) > 100 and np.median(old) < 0.05
+    views = sum(len(es) for es in errors.values())
+    assert 0.95 * views < trk.anchor_stats()["aligned"] <= views  # the keyframes' views only
+    # without the flag the same tracker aligns every frame
+    _, every = _errors_by_age(True, keyframes=kf)
+    assert every.anchor_stats()["aligned"] > 3 * trk.anchor_stats()["aligned"]
+
+
+def test_the_trackers_keyframes_are_the_selectors_on_its_tracks():
+    from frontend.keyframes import KeyframeSelector
+
+    tex = _texture()
+    cam = CameraCalib(W, H, 450.0, 450.0, W / 2 - 0.5, H / 2 - 0.5, np.zeros(4), np.eye(4))
+    kf = KeyframeConfig(min_parallax_px=8.0)
+    trk, selector = FeatureTracker(cam, TrackerConfig(), kf), KeyframeSelector(kf)
+    flags = []
+    for k in range(30):
+        tr = trk.track(Frame(k * 50_000_000, 0, _frame(tex, k)))
+        flags.append(trk.keyframe)
+        assert trk.keyframe == selector.consider(tr)
+    assert 3 < sum(flags) < 25  # both kinds of frame were seen
+    assert FeatureTracker(cam, TrackerConfig()).keyframe is None  # no selection without a keyframe config
 
 
 def test_a_failed_alignment_keeps_klt_pixel_and_reanchors():

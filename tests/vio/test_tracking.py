@@ -73,10 +73,10 @@ def test_tracking_ahead_gives_the_same_tracks(sim_capture):
     plain = list(tracked_frames(cap, cfg, 30))
     ahead = list(tracked_frames(cap, cfg, 30, prefetch=3))
     assert len(plain) == len(ahead) == 30
-    for (kind_a, (frame_a, tr_a, ages_a, col_a)), (kind_b, (frame_b, tr_b, ages_b, col_b)) in zip(
+    for (kind_a, (frame_a, tr_a, ages_a, col_a, key_a)), (kind_b, (frame_b, tr_b, ages_b, col_b, key_b)) in zip(
         plain, ahead, strict=True
     ):
-        assert kind_a == kind_b == "frame"
+        assert kind_a == kind_b == "frame" and key_a == key_b
         assert np.array_equal(frame_a.image, frame_b.image)
         assert np.array_equal(tr_a.ids, tr_b.ids) and np.array_equal(tr_a.uv, tr_b.uv)
         assert np.array_equal(tr_a.uv_per_s, tr_b.uv_per_s) and np.array_equal(ages_a, ages_b)

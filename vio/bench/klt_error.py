@@ -7,7 +7,10 @@ pixel of the track is compared with that point's true projection (the scenario's
 holds the start's detection error, the tracker's noise and its drift along the surface; a track on an occluding
 edge may follow another surface (the tails). It is what the estimator's pixel noise model has to describe.
 
-    python -m vio.bench.klt_error CAPTURE [--frames N] [--set tracker.key=value ...]
+`--keyframes` keeps only the views of the keyframes the tracker picks (what the estimator reads; with
+`tracker.anchor_keyframes_only` the only aligned ones).
+
+    python -m vio.bench.klt_error CAPTURE [--frames N] [--keyframes] [--set tracker.key=value ...]
 """
 
 from __future__ import annotations
@@ -25,8 +28,9 @@ from vio.records import Frame
 AGE_BINS = ((1, 2), (3, 5), (6, 10), (11, 20), (21, 30), (31, 50), (51, 80), (81, 150), (151, 100000))
 
 
-def track_errors(cap: Capture, cfg: Config, frames: int | None = None) -> np.ndarray:
-    """(N, 2) rows of (age in frames, pixel error) for every observation after a track's first (see the docstring)."""
+def track_errors(cap: Capture, cfg: Config, frames: int | None = None, keyframes: bool = False) -> np.ndarray:
+    """(N, 2) rows of (age in frames, pixel error) for every observation after a track's first (see the docstring),
+    or with `keyframes` for those in keyframes only."""
     from frontend.tracker import FeatureTracker
     from vio.sim.render import Renderer, camera_poses
 
@@ -35,7 +39,7 @@ def track_errors(cap: Capture, cfg: Config, frames: int | None = None) -> np.nda
     renderer = Renderer(sc.scene, cam)
     n = cap.num_frames if frames is None else min(frames, cap.num_frames)
     poses = camera_poses(sc, np.asarray(cap.frame_t_ns[:n], np.int64), cam)
-    tracker = FeatureTracker(cam, cfg.tracker)
+    tracker = FeatureTracker(cam, cfg.tracker, cfg.keyframes)
     first: dict[int, tuple[int, np.ndarray]] = {}  # track id -> (frame, world point)
     rows = []
     for i in range(n):
@@ -46,7 +50,7 @@ def track_errors(cap: Capture, cfg: Config, frames: int | None = None) -> np.nda
             X, _ = renderer.surface_points(poses[i], tracks.uv[new])
             for k, x in zip(new, X, strict=True):
                 first[ids[k]] = (i, x)
-        old = [k for k, j in enumerate(ids) if first[j][0] < i]
+        old = [k for k, j in enumerate(ids) if first[j][0] < i and (tracker.keyframe or not keyframes)]
         if not old:
             continue
         X = np.array([first[ids[k]][1] for k in old])
@@ -76,11 +80,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m vio.bench.klt_error", description=__doc__.splitlines()[0])
     ap.add_argument("capture", help="a built-in simulated capture with images")
     ap.add_argument("--frames", type=int, default=None, help="only the first N frames")
+    ap.add_argument("--keyframes", action="store_true", help="only the views in keyframes")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="tracker override")
     args = ap.parse_args(argv)
     try:
         cap = open_capture(args.capture)
-        errors = track_errors(cap, load_config(None, args.set), args.frames)
+        errors = track_errors(cap, load_config(None, args.set), args.frames, args.keyframes)
     except VioError as exc:
         print(f"klt_error: {exc}")
         return 2
