@@ -37,11 +37,11 @@ class TrackerConfig:
     essential_method: str = "usac_magsac"  # usac_magsac | usac_accurate | usac_default | ransac | lmeds | none
     essential_min_flow_px: float = 1.0  # skip the essential-matrix check below this median flow, px
     essential_lag_frames: int = 5  # also check against the frame this many frames back (slow drift); 0/1: off
-    # each track re-aligned every frame with the patch it began with (affine + gain/bias; frontend/anchor.py): no
+    # each track re-aligned with the patch it began with (affine + gain/bias; frontend/anchor.py): no
     # drift with age (docs/BENCHMARKS.md, "Anchored tracks"); false: frame-to-frame KLT only
     anchor: bool = True
     anchor_radius_px: int = 7  # half-size of the template, px
-    anchor_iterations: int = 4  # Gauss-Newton iterations per frame at most (8 gave the same error, 1.2 ms more)
+    anchor_iterations: int = 4  # Gauss-Newton iterations per alignment at most (2 and 8 gave the same error by age)
     anchor_max_shift_px: float = 2.0  # an alignment further than this from KLT's pixel fails, px
     anchor_min_ncc: float = 0.9  # an alignment correlating less than this with the template fails
     anchor_max_stretch: float = 1.5  # an affine that stretches or shrinks the template more than this fails
