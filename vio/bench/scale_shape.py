@@ -17,7 +17,7 @@ With an exact shape and a soft angular factor (images trusted less than they des
 `shape_noise_m` equal to the factor's sigma (the images' noise model matched) it does not (BENCHMARKS, issue 15).
 
     python -m vio.bench.scale_shape CAPTURE [CAPTURE ...] [--rotations relative|truth|gyro] [--shape-sigma-m M]
-        [--angular]
+        [--angular] [--kf-interval-s S]
 """
 
 from __future__ import annotations
@@ -177,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--shape-sigma-m", type=float, default=1e-4, help="sigma of each keyframe's shape factor, m")
     ap.add_argument("--angular", action="store_true", help="the shape cost scales as the images' (divided by s)")
+    ap.add_argument("--kf-interval-s", type=float, default=0.15,
+                    help="keyframe spacing, s (the estimator's is about 0.15 s on the orbit)")  # fmt: skip
     ap.add_argument("--shape-noise-m", type=float, default=0.0,
                     help="white noise on each keyframe's shape, m (the i-th capture's draw: seed i)")  # fmt: skip
     args = ap.parse_args(argv)
@@ -185,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     for i, path in enumerate(args.captures):
         try:
             cap = open_capture(path, needs=("imu",))
-            res = shape_scale(cap, args.rotations, args.shape_sigma_m, args.angular, shape_noise_m=args.shape_noise_m,
-                              noise_seed=i)  # fmt: skip
+            res = shape_scale(cap, args.rotations, args.shape_sigma_m, args.angular, args.kf_interval_s,
+                              shape_noise_m=args.shape_noise_m, noise_seed=i)  # fmt: skip
         except (VioError, ValueError) as exc:
             print(f"{path}: {exc}")
             return 2
