@@ -227,6 +227,9 @@ class RunConfig:
     progress: bool = True  # progress bar on a terminal
     # the tracker in a process of its own, beside the estimator (vio/track_worker.py); the same results
     tracker_process: bool = True
+    # the tracker's process this much nicer than the estimator's (os.nice): the estimator gets the core it waits
+    # for first, the tracker the rest; the same results
+    tracker_nice: int = 0
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ keyframe?) or
 from __future__ import annotations
 
 import fcntl
+import os
 import signal
 import subprocess
 import sys
@@ -84,6 +85,8 @@ def main() -> int:
     cv2.setNumThreads(1)
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     (path, calib, options), cfg, stop, every_image = recv(stdin)
+    if cfg.run.tracker_nice > 0:
+        os.nice(cfg.run.tracker_nice)
     try:
         cap = open_capture(path, calib, **options)
         for kind, payload in tracked_frames(cap, cfg, stop, PREFETCH_FRAMES):
