@@ -40,3 +40,31 @@ def test_a_worker_that_cannot_open_the_capture_is_one_error(tmp_path):
         assert "missing" in str(exc) and "\n" not in str(exc)
     else:  # pragma: no cover - the assertion below names the failure
         raise AssertionError("no error from a missing capture")
+
+
+def test_the_worker_runs_nicer_than_the_estimator(sim_capture, monkeypatch):
+    import os
+    from pathlib import Path
+
+    import pytest
+
+    from vio.readers import open_capture
+
+    if not Path("/proc/self/stat").exists():
+        pytest.skip("needs Linux /proc to read a process's nice value")
+    procs = []
+    real_popen = tw.subprocess.Popen
+
+    def popen(*args, **kwargs):
+        procs.append(real_popen(*args, **kwargs))
+        return procs[-1]
+
+    cap = open_capture(sim_capture("orbit", 2.0))
+    monkeypatch.setattr(tw.subprocess, "Popen", popen)
+    cfg = load_config(None, ["run.tracker_nice=7"])
+    items = tw.tracked_in_worker(cap.reopen, cfg, 5, False)
+    kind, _ = next(items)  # the worker has read its config (and set its priority) before the first frame
+    assert len(procs) == 1
+    nice = int(Path(f"/proc/{procs[0].pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+    items.close()
+    assert kind == "frame" and nice == os.nice(0) + 7
