@@ -2,9 +2,10 @@
 else.
 
 Frames go through the OpenCV tracker (or precomputed tracks, e.g. gtsam's eqvio file), the keyframe selector
-(`frontend.keyframes`: the tracker's own, or here for precomputed tracks) picks keyframes, the estimator preintegrates the IMU between them and updates the smoother; estimates go to the
-sinks (the rerun viewer is one, built by the command line) and, at the end, `vio.outputs` writes trajectory.tum,
-states.csv, landmarks.ply and run.json in `out`. A tracking loss, a solver exception or a frame that fails to decode
+(`frontend.keyframes`: the tracker's own, or here for precomputed tracks) picks keyframes, the estimator
+preintegrates the IMU between them and updates the smoother; estimates go to the sinks (the rerun viewer is one,
+built by the command line) and, at the end, `vio.outputs` writes trajectory.tum, states.csv, landmarks.ply and
+run.json in `out`. A tracking loss, a solver exception or a frame that fails to decode
 does not end the run; `vio.health` reports them in run.json as spans with a cause, and the run's status.
 """
 
@@ -99,9 +100,10 @@ Tracked = tuple[Frame | None, FeatureTracks, np.ndarray, tuple[np.ndarray, np.nd
 
 def _frames_and_tracks(cap: Capture, cfg: Config, stop: int, monitor: HealthMonitor, viewer: bool) -> Iterator[Tracked]:
     """Yield (frame or None, tracks, ages, the new tracks' colours or None, keyframe or None) for every frame: the
-    capture's own tracks (the keyframes left to the caller), or the tracker's (with its keyframes), in a process of its own when `cfg.run.tracker_process` and the capture can be opened
-    again there (`Capture.reopen`, `vio.track_worker`: frames without an image then are the non-keyframes, unless a
-    `viewer` needs them all). A frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
+    capture's own tracks (the keyframes left to the caller), or the tracker's (with its keyframes), in a process of
+    its own when `cfg.run.tracker_process` and the capture can be opened again there (`Capture.reopen`,
+    `vio.track_worker`: frames without an image then are the non-keyframes, unless a `viewer` needs them all). A
+    frame whose image fails to decode is skipped with a warning and counted by `monitor`."""
     if cap.tracks is not None:
         velocity = TrackVelocity()
         first_seen: dict[int, int] = {}
@@ -213,7 +215,7 @@ def _run(
             if frame is not None:
                 for sink in sinks:
                     sink.on_frame(frame, tracks.ids, tracks.uv, ages)
-            if (selector.consider(tracks) if keyframe is None else keyframe):
+            if selector.consider(tracks) if keyframe is None else keyframe:
                 n_kf += 1
                 try:
                     produced = _add_keyframe(est, frame, tracks, cfg)

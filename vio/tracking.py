@@ -31,8 +31,8 @@ def image_of(cap: Capture, i: int) -> np.ndarray:
 def tracked_frames(cap: Capture, cfg: Config, stop: int, prefetch: int = 0) -> Iterator[tuple[str, Any]]:
     """The OpenCV tracker over frames 0..stop-1: ("frame", (frame, tracks, track ages in frames, the new tracks'
     colours (ids, RGB), whether the frame is a keyframe)) per frame (the tracker picks the keyframes:
-    `frontend.keyframes` on its tracks), or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to decode
-    (or has the wrong size). With `prefetch` > 0 a thread decodes the images up to that many frames ahead and
+    `frontend.keyframes` on its tracks), or ("skip", (t_ns, frame index, reason)) for a frame whose image fails to
+    decode (or has the wrong size). With `prefetch` > 0 a thread decodes the images up to that many frames ahead and
     computes what corner detection needs from the image alone (`frontend.detection.corner_response`), the same
     numbers the tracker would compute (`ahead`); only for a capture that nothing else reads meanwhile (the
     tracker's own process)."""
