@@ -32,6 +32,14 @@ def test_command_line(sim_capture, tmp_path):
                          capture_output=True, text=True, check=False)  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert res.stdout.splitlines()[1].startswith("1-2 |")
+    key = subprocess.run([sys.executable, "-m", "vio.bench.klt_error", str(cap), "--frames", "20", "--keyframes"],
+                         capture_output=True, text=True, check=False)  # fmt: skip
+    assert key.returncode == 0, key.stderr
+
+    def views(out: str) -> int:
+        return sum(int(line.split("|")[1]) for line in out.splitlines()[1:])
+
+    assert 0 < views(key.stdout) < 0.7 * views(res.stdout)  # only the keyframes' views (about 1 frame in 3)
     bad = subprocess.run([sys.executable, "-m", "vio.bench.klt_error", str(tmp_path)], capture_output=True, text=True,
                          check=False)  # fmt: skip
     assert bad.returncode == 2 and "Traceback" not in bad.stdout + bad.stderr
