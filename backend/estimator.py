@@ -428,7 +428,7 @@ class VioEstimator:
 
     def _admitted(self, j: int, p: np.ndarray, stamps: dict[int, float], t_s: float) -> None:
         self.state.set(L(j), p)
-        self.state.retired.pop(j, None)  # re-admitted after a rebuild: no longer an old landmark
+        self.state.retired.discard(j)  # re-admitted after a rebuild: no longer an old landmark
         self.reidentification.on_admit(j, p)
         stamps[L(j)] = t_s
 

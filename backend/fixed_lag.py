@@ -7,8 +7,8 @@ memory do not grow with the capture. A landmark's timestamp is that of its lates
 with the last pose that saw it; it never stays behind without a measurement (the indeterminate system that a
 landmark left alone would make).
 
-A landmark that leaves is not forgotten: `OldLandmarks.keep` files its last estimate (world, m) in
-`GraphState.retired`, and the landmark stays a candidate for re-identification. When it is seen again, by its own
+A landmark that leaves is not forgotten: `OldLandmarks.keep` files it in `GraphState.retired` (its last estimate,
+world, m, stays in `GraphState.values`), and the landmark stays a candidate for re-identification. When it is seen again, by its own
 track or through re-identification, `revive` puts it back into the smoother as a new variable with a prior at the
 kept position (`smoother.map_sigma_m`). The old map then anchors the window: a revisit corrects the drift of the
 live estimate without re-eliminating the old part of the graph, the cost that makes full iSAM2's loop closures
@@ -40,11 +40,12 @@ class OldLandmarks:
 
     def position(self, j: int) -> np.ndarray | None:
         """The kept world position (3,) m of old landmark j, or None when j is not an old landmark."""
-        return self.state.retired.get(j)
+        return np.asarray(self.state.values.atPoint3(L(j)), float) if j in self.state.retired else None
 
     def revive(self, j: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> np.ndarray:
         """Old landmark j enters the smoother again at its kept position, with the map prior; returns the position."""
-        p = self.state.retired.pop(j)
+        self.state.retired.remove(j)
+        p = np.asarray(self.state.values.atPoint3(L(j)), float)
         values.insert(L(j), p)
         graph.add(fb.landmark_prior(j, p, self.sigma_m))
         self.num_revived += 1
@@ -53,14 +54,16 @@ class OldLandmarks:
 
 def retire(state: GraphState, marginalised: gtsam.Values) -> dict[int, np.ndarray]:
     """Keep the last estimates of the variables an update marginalised (`Smoother.update` returns them) and file
-    the landmarks among them as old landmarks; returns those landmarks' positions by id."""
+    the landmarks among them as old landmarks; returns those landmarks' positions by id. A set of ids, not of
+    positions: the positions are in `state.values` already, and a (3,) array per landmark was 140 bytes of the
+    memory that grows with the map (docs/BENCHMARKS.md, "Bounded memory")."""
     state.absorb(marginalised)
     kept = {}
     for key in marginalised.keys():
         sym = gtsam.Symbol(key)
         if chr(sym.chr()) == "l":
             kept[int(sym.index())] = np.asarray(marginalised.atPoint3(key), float)
-    state.retired.update(kept)
+    state.retired.update(kept.keys())
     return kept
 
 

@@ -46,7 +46,7 @@ class GraphState:
         self.num_obs: dict[int, int] = {}  # landmark id -> projection factors in the graph
         self.last_obs: dict[int, int] = {}  # landmark id -> last keyframe with a projection factor on it
         self.projections: dict[int, int] = {}  # keyframe index -> projection factors on its pose (run health)
-        self.retired: dict[int, np.ndarray] = {}  # landmark id -> world point (m) when it left the fixed lag
+        self.retired: set[int] = set()  # landmarks that left the fixed lag; `values` keeps their last estimate
         self.bias = gtsam.imuBias.ConstantBias()  # latest bias estimate (preintegration uses it)
         self.last_k: int | None = None
         self.dirty = False  # True when the smoother holds estimates not yet pulled into `values`

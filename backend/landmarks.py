@@ -181,7 +181,8 @@ class LandmarkBook:
             if min(tr.views) >= before:
                 continue
             if tr.admitted and tr.first is None:
-                tr.first = tr.first_view()
+                k0, uv0 = tr.first_view()
+                tr.first = (k0, np.array(uv0))  # a copy: the view is a row of its keyframe's whole pixel array
             kept = {kk: uv for kk, uv in tr.views.items() if kk >= before}
             if kept:
                 k_first = min(kept)

@@ -48,6 +48,10 @@ def isam2_params(cfg: SmootherConfig) -> gtsam.ISAM2Params:
     # dwarfs the priors (measured on the EuRoC IMU before zero-velocity updates: 2-10 s); QR is the robust option.
     # A failure is not fatal either way (the estimator rebuilds from the last good state).
     params.setFactorization(cfg.factorization)
+    # New factors take the slots of removed ones. A fixed lag removes every factor it marginalises, and without this
+    # iSAM2's factor list kept a null slot for each: 52,000 more a minute on the 10-minute orbit, 600,000 by its end
+    # (docs/BENCHMARKS.md, "Bounded memory"). iSAM2 alone removes none, so it is unchanged.
+    params.findUnusedFactorSlots = True
     return params
 
 
