@@ -8,13 +8,13 @@ with the last pose that saw it; it never stays behind without a measurement (the
 landmark left alone would make).
 
 A landmark that leaves is not forgotten: `OldLandmarks.keep` files it in `GraphState.retired` (its last estimate,
-world, m, stays in `GraphState.values`), and the landmark stays a candidate for re-identification. When it is seen again, by its own
-track or through re-identification, `revive` puts it back into the smoother as a new variable with a prior at the
-kept position (`smoother.map_sigma_m`). The old map then anchors the window: a revisit corrects the drift of the
-live estimate without re-eliminating the old part of the graph, the cost that makes full iSAM2's loop closures
-slow. The prior counts again some of the information already marginalised into the window, so its sigma is set
-wider than the landmark's own uncertainty; the batch refinement (`--refine`) does not use it and joins the old and
-new views of the landmark as one variable (every factor stays in `GraphState.all_factors`).
+world, m, stays in `GraphState.values`), and the landmark stays a candidate for re-identification. When it is seen
+again, by its own track or through re-identification, `revive` puts it back into the smoother as a new variable
+with a prior at the kept position (`smoother.map_sigma_m`). The old map then anchors the window: a revisit corrects
+the drift of the live estimate without re-eliminating the old part of the graph, the cost that makes full iSAM2's
+loop closures slow. The prior counts again some of the information already marginalised into the window, so its
+sigma is set wider than the landmark's own uncertainty; the batch refinement (`--refine`) does not use it and joins
+the old and new views of the landmark as one variable (every factor stays in `GraphState.all_factors`).
 """
 
 from __future__ import annotations
