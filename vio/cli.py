@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="write a synthetic capture (ASL layout)")
     p.add_argument(
-        "scenario", help="orbit | figure8 | room | static | calibration | a trajectory file (EuRoC CSV or TUM)"
+        "scenario", help="orbit | figure8 | room | static | tumble | calibration | a trajectory file (EuRoC CSV or TUM)"
     )
     p.add_argument("--out", required=True, help="output capture folder")
     p.add_argument("--seed", type=int, default=0)

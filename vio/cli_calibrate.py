@@ -1,5 +1,5 @@
-"""The calibration commands of the command line: `vio calibrate camera`, `vio calibrate imu` and
-`vio calibrate camera-imu` (thin over vio.calibrate)."""
+"""The calibration commands of the command line: `vio calibrate camera`, `vio calibrate imu`, `vio calibrate
+imu-axes` and `vio calibrate camera-imu` (thin over vio.calibrate)."""
 
 from __future__ import annotations
 
@@ -28,6 +28,13 @@ def _cmd_imu(args: argparse.Namespace) -> int:
     from vio.calibrate.imu_files import calibrate_imu_files
 
     print(calibrate_imu_files(args.log, args.out, inflation=args.inflation))
+    return 0
+
+
+def _cmd_imu_axes(args: argparse.Namespace) -> int:
+    from vio.calibrate.imu_axes import calibrate_imu_axes_files
+
+    print(calibrate_imu_axes_files(args.log, args.out))
     return 0
 
 
@@ -92,6 +99,16 @@ def add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
         help="the factor VIO users commonly multiply the noise by (reported, not applied)",
     )
     p.set_defaults(func=_cmd_imu)
+
+    p = csub.add_parser(
+        "imu-axes",
+        help="the accelerometer's scale factors and axis angles from the phone laid still in many orientations",
+    )
+    p.add_argument(
+        "log", metavar="LOG", help="a capture (any format vio reads): still 2-3 s in each of 20-30 orientations"
+    )
+    p.add_argument("--out", required=True, help="the YAML to write (give it to vio run as --set imu.axes=FILE)")
+    p.set_defaults(func=_cmd_imu_axes)
 
     p = csub.add_parser("camera-imu", help="camera-IMU extrinsics and time offset from a capture of the board")
     p.add_argument(

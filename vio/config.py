@@ -79,6 +79,9 @@ class ImuConfig:
     max_gap_s: float = 0.05  # an IMU gap longer than this between samples is reported
     integration_sigma: float = 1e-4  # sigma of the position-integration error (gtsam cov = sigma^2), m/sqrt(s)
     noise_inflation: float = 1.0  # multiplies the capture's Kalibr noise densities and random walks
+    # the accelerometer's scale factors and axis angles from `vio calibrate imu-axes` (its YAML), applied to every
+    # sample; "": none (vio/calibrate/imu_axes.py)
+    axes: str = ""
 
 
 @dataclass(frozen=True)

@@ -183,6 +183,11 @@ def _run(
     cap = open_any(capture, calib)
     if cap.camera is None or cap.imu is None or cap.imu_calib is None:
         raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
+    if cfg.imu.axes:
+        from vio.calibrate.imu_axes import corrected, read_correction
+
+        cap = dataclasses.replace(cap, imu=corrected(cap.imu, read_correction(cfg.imu.axes)))
+        log.info("accelerometer axes corrected with %s", cfg.imu.axes)
     known = None
     if positions is not None:
         from vio.readers.positions import read_positions

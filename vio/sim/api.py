@@ -32,8 +32,14 @@ from vio.writers.asl import AslWriter
 
 log = logging.getLogger(__name__)
 
-BUILTIN = ("orbit", "figure8", "room", "static")
-DEFAULT_DURATION_S = {"orbit": 60.0, "figure8": 30.0, "room": 60.0, "static": 3600.0}
+BUILTIN = ("orbit", "figure8", "room", "static", "tumble")
+DEFAULT_DURATION_S = {
+    "orbit": 60.0,
+    "figure8": 30.0,
+    "room": 60.0,
+    "static": 3600.0,
+    "tumble": scenarios.TUMBLE_POSES * (scenarios.TUMBLE_HOLD_S + scenarios.TUMBLE_TURN_S),
+}
 
 
 def _phases_stream(seed: int) -> np.random.SeedSequence:
@@ -115,9 +121,11 @@ def load_scenario(
         else:
             scene = scenarios.tabletop_scene(texture_seed, the_part, surface)
             centre = scene.object_corners_world().mean(axis=0)
-            make = {"orbit": scenarios.orbit_camera, "static": scenarios.static_camera}.get(
-                base, scenarios.figure8_camera
-            )
+            make = {
+                "orbit": scenarios.orbit_camera,
+                "static": scenarios.static_camera,
+                "tumble": scenarios.tumble_camera,
+            }.get(base, scenarios.figure8_camera)
             cam_fn = make(rng, centre, **motion)
         if phone is not None and phone.portrait:
             cam_fn = portrait_camera(cam_fn)

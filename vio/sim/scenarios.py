@@ -9,6 +9,8 @@ orbit:   a 76.2 mm cube on a 2.0 x 1.6 m table in a 4.1 x 4.0 m room; the camera
 figure8: the same scene, a horizontal figure eight (10 s per loop) above the table looking at the cube.
 room:    a hand-held walk (steps bob the camera) around a 4 x 5 m room with a table, the cube and furniture.
 static:  the orbit's scene, the phone at rest 0.45 m from the cube (an IMU noise log for `vio calibrate imu`).
+tumble:  the phone laid still in 24 orientations (3 s each, turned in 1.5 s between them): the accelerometer log of
+         a multi-position calibration (`vio calibrate imu-axes`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from vio.sim.parts import Part
 from vio.sim.scene import Box, PlacedPart, Scene
@@ -171,5 +174,37 @@ def static_camera(rng: np.random.Generator, part_centre: np.ndarray) -> PoseFn:
     def fn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p_cam = np.repeat(p[None, :], len(t), axis=0)
         return p_cam, look_at(p_cam, np.asarray(part_centre, float)[None, :], np.zeros(len(t)))
+
+    return fn
+
+
+TUMBLE_POSES = 24
+TUMBLE_HOLD_S = 3.0
+TUMBLE_TURN_S = 1.5
+
+
+def tumble_camera(rng: np.random.Generator, part_centre: np.ndarray) -> PoseFn:
+    """A multi-position IMU calibration: the phone laid still in `TUMBLE_POSES` orientations for `TUMBLE_HOLD_S`
+    each and turned about its camera between them in `TUMBLE_TURN_S` (C3-smooth: the IMU sees no jerk at the
+    ends). First the six with a camera axis pointing down or up, then seeded uniformly random ones, so gravity
+    covers the sphere of the IMU's axes. The phone stays 0.3 m above the part (the images, if rendered, see the
+    room)."""
+    axes = np.vstack([np.eye(3), -np.eye(3)])
+    faces = [Rotation.align_vectors([[0.0, 0.0, -1.0]], [a])[0] for a in axes]
+    rest = Rotation.random(TUMBLE_POSES - len(faces), random_state=rng)
+    world_R_cam = Rotation.concatenate(faces + [rest])
+    p = np.asarray(part_centre, float) + np.array([0.0, 0.0, 0.3])
+    period = TUMBLE_HOLD_S + TUMBLE_TURN_S
+    turns = [Slerp([0.0, 1.0], world_R_cam[[i, min(i + 1, TUMBLE_POSES - 1)]]) for i in range(TUMBLE_POSES)]
+
+    def fn(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, float)
+        i = np.clip(np.floor(t / period).astype(int), 0, TUMBLE_POSES - 1)
+        u = smoothstep7(np.clip((t - i * period - TUMBLE_HOLD_S) / TUMBLE_TURN_S, 0.0, 1.0))
+        R = np.empty((len(t), 3, 3))
+        for n in np.unique(i):
+            sel = i == n
+            R[sel] = turns[n](u[sel]).as_matrix()
+        return np.repeat(p[None, :], len(t), axis=0), R
 
     return fn
