@@ -188,7 +188,7 @@ def _run(
 
         cap = dataclasses.replace(cap, imu=corrected(cap.imu, read_correction(cfg.imu.axes)))
         log.info("accelerometer axes corrected with %s", cfg.imu.axes)
-    elif cap.format == "mars":  # a phone's log: its accelerometer's axes are worth a calibration
+    elif cap.format in ("mars", "opencamera", "sensorlogger"):  # a phone app's log: worth calibrating its axes
         log.info(
             "a phone accelerometer's axes are off by about 1 %%, which the metric scale inherits: calibrate them once "
             "(vio calibrate imu-axes) and run with --set imu.axes=FILE"
