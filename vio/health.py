@@ -253,4 +253,6 @@ def summary_lines(summary: dict[str, object]) -> list[str]:
         lines.append(str(scale["advice"]))  # type: ignore[index]
     elif scale.get("sigma_rel") is not None:  # type: ignore[union-attr]
         lines.append(f"scale sigma {100 * scale['sigma_rel']:.2f} % (from the graph)")  # type: ignore[index]
+    if scale.get("axes_advice"):  # type: ignore[union-attr]
+        lines.append(str(scale["axes_advice"]))  # type: ignore[index]
     return lines

@@ -183,16 +183,7 @@ def _run(
     cap = open_any(capture, calib)
     if cap.camera is None or cap.imu is None or cap.imu_calib is None:
         raise CaptureError("capture needs camera calibration, IMU samples and IMU noise calibration", cap.root)
-    if cfg.imu.axes:
-        from vio.calibrate.imu_axes import corrected, read_correction
-
-        cap = dataclasses.replace(cap, imu=corrected(cap.imu, read_correction(cfg.imu.axes)))
-        log.info("accelerometer axes corrected with %s", cfg.imu.axes)
-    elif cap.format in ("mars", "opencamera", "sensorlogger"):  # a phone app's log: worth calibrating its axes
-        log.info(
-            "a phone accelerometer's axes are off by about 1 %%, which the metric scale inherits: calibrate them once "
-            "(vio calibrate imu-axes) and run with --set imu.axes=FILE"
-        )
+    cap, axes_note = _with_axes(cap, cfg)
     known = None
     if positions is not None:
         from vio.readers.positions import read_positions
@@ -277,6 +268,7 @@ def _run(
         health,
     )
     summary["scale"].update(_scale_advice(cap, stats, states, gravity_frame=positions is None))
+    summary["scale"].update(axes_note)
     summary["camera_timing"] = outputs.camera_timing(stats, readout_source)
     result = RunResult(out, summary, stats, states, landmarks)
     if failure:
@@ -314,6 +306,26 @@ def _with_readout(cap: Capture, cfg: Config) -> tuple[Config, str]:
     if readout_s > 0:
         log.info("rolling shutter: readout %.2f ms (%s)", readout_s * 1e3, source)
     return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, readout_s=readout_s)), source
+
+
+PHONE_FORMATS = ("mars", "opencamera", "sensorlogger")  # phone apps' logs
+AXES_ADVICE = (
+    "a phone accelerometer's axes are off by about 1 %, which the metric scale inherits: calibrate them once "
+    "(vio calibrate imu-axes) and run with --set imu.axes=FILE"
+)
+
+
+def _with_axes(cap: Capture, cfg: Config) -> tuple[Capture, dict[str, Any]]:
+    """The capture with its accelerometer corrected by `imu.axes` (vio/calibrate/imu_axes.py), and run.json's
+    `scale.imu_axes` (the file used, or None) with `scale.axes_advice` for a phone app's log that has none."""
+    if cfg.imu.axes:
+        from vio.calibrate.imu_axes import corrected, read_correction
+
+        cap = dataclasses.replace(cap, imu=corrected(cap.imu, read_correction(cfg.imu.axes)))
+        return cap, {"imu_axes": cfg.imu.axes}
+    if cap.format in PHONE_FORMATS:
+        return cap, {"imu_axes": None, "axes_advice": AXES_ADVICE}
+    return cap, {"imu_axes": None}
 
 
 def _scale_advice(

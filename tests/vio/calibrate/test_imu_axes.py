@@ -118,3 +118,22 @@ def test_run_with_a_bad_axes_file_is_one_line(sim_capture, tmp_path):
     bad.write_text("not: [a, matrix]\n")
     err = _one_line_error("run", str(cap), "--out", str(tmp_path / "r"), "--set", f"imu.axes={bad}")
     assert "accelerometer_correction" in err
+
+
+def test_a_phone_logs_run_without_axes_says_how_to_calibrate_them():
+    from pathlib import Path
+
+    from vio import pipeline
+    from vio.capture import Capture
+    from vio.config import load_config
+    from vio.health import summary_lines
+
+    def capture(fmt: str) -> Capture:
+        return Capture(Path("x"), None, None, None, np.zeros(0, np.int64), lambda i: np.zeros((1, 1)), format=fmt)
+
+    cfg = load_config(None, [])
+    assert pipeline._with_axes(capture("asl"), cfg)[1] == {"imu_axes": None}
+    _, note = pipeline._with_axes(capture("mars"), cfg)
+    assert "vio calibrate imu-axes" in note["axes_advice"]
+    summary = {"status": "ok", "num_states": 3, "num_landmarks": 9, "span_s": 1.0, "wall_time_s": 1.0, "scale": note}
+    assert summary_lines(summary)[-1] == note["axes_advice"]
