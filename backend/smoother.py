@@ -50,7 +50,7 @@ def isam2_params(cfg: SmootherConfig) -> gtsam.ISAM2Params:
     params.setFactorization(cfg.factorization)
     # New factors take the slots of removed ones. A fixed lag removes every factor it marginalises, and without this
     # iSAM2's factor list kept a null slot for each: 52,000 more a minute on the 10-minute orbit, 600,000 by its end
-    # (docs/BENCHMARKS.md, "Bounded memory"). iSAM2 alone removes none, so it is unchanged.
+    # (docs/BENCHMARKS.md, "The fixed lag's factor slots"). iSAM2 alone removes none, so it is unchanged.
     params.findUnusedFactorSlots = True
     return params
 
