@@ -137,3 +137,15 @@ def test_a_phone_logs_run_without_axes_says_how_to_calibrate_them():
     assert "vio calibrate imu-axes" in note["axes_advice"]
     summary = {"status": "ok", "num_states": 3, "num_landmarks": 9, "span_s": 1.0, "wall_time_s": 1.0, "scale": note}
     assert summary_lines(summary)[-1] == note["axes_advice"]
+
+
+def test_the_benchmark_of_the_axes_runs_one_seed(tmp_path):
+    """`python -m vio.bench.imu_axes_limit` on one short seed: three scale errors and the axes left after the
+    correction (the 30-seed table is in docs/BENCHMARKS.md)."""
+    from vio.bench.imu_axes_limit import VARIANTS, one_seed, parse_seeds, table
+
+    assert parse_seeds("201-203,207") == [201, 202, 203, 207]
+    row = one_seed(7, tmp_path, duration_s=12.0)
+    assert set(row["scale_error"]) == set(VARIANTS) and all(np.isfinite(list(row["scale_error"].values())))
+    assert row["axes_left"] < 5e-3
+    assert "corrected by imu-axes" in table([row, row])
