@@ -34,7 +34,7 @@ def _cmd_imu(args: argparse.Namespace) -> int:
 def _cmd_imu_axes(args: argparse.Namespace) -> int:
     from vio.calibrate.imu_axes import calibrate_imu_axes_files
 
-    print(calibrate_imu_axes_files(args.log, args.out))
+    print(calibrate_imu_axes_files(args.log, args.out, args.gravity, args.latitude, args.height))
     return 0
 
 
@@ -108,6 +108,9 @@ def add_calibrate_commands(sub: argparse._SubParsersAction) -> None:
         "log", metavar="LOG", help="a capture (any format vio reads): still 2-3 s in each of 20-30 orientations"
     )
     p.add_argument("--out", required=True, help="the YAML to write (give it to vio run as --set imu.axes=FILE)")
+    p.add_argument("--latitude", type=float, default=None, help="where the log was recorded, deg: local gravity")
+    p.add_argument("--height", type=float, default=0.0, help="with --latitude: height above sea level, m")
+    p.add_argument("--gravity", type=float, default=None, help="local gravity, m/s^2 (default 9.81)")
     p.set_defaults(func=_cmd_imu_axes)
 
     p = csub.add_parser("camera-imu", help="camera-IMU extrinsics and time offset from a capture of the board")

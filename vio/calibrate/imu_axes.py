@@ -13,6 +13,11 @@ Model: measured = T a + b + noise, with a the true specific force. K = T^-1 is f
 here and is left to the camera-IMU extrinsic) together with b, by least squares on |K (m_i - b)| = g over the still
 stretches' mean readings m_i. `vio run --imu-axes FILE` applies K to every accelerometer sample; the bias stays the
 estimator's to find (it drifts from day to day anyway).
+
+The scale of K is that of the gravity it is fitted to, and the metric scale of every run with it inherits that:
+gravity is 9.780 m/s^2 at the equator and 9.832 at the poles, 0.3 % either side of the 9.81 assumed when nothing is
+given. `--latitude` (and `--height`) gives the local value by the WGS 84 normal gravity formula (Somigliana's, with
+the free-air gradient), `--gravity` a measured one.
 """
 
 from __future__ import annotations
@@ -153,8 +158,40 @@ def read_correction(path: str | Path) -> np.ndarray:
     return K
 
 
-def calibrate_imu_axes_files(log_path: str | Path, out: str | Path) -> str:
-    """`vio calibrate imu-axes LOG --out FILE.yaml`: fit (module docstring), write the YAML, return the summary."""
+def normal_gravity(latitude_deg: float, height_m: float = 0.0) -> float:
+    """WGS 84 normal gravity, m/s^2, at a geodetic latitude and a height above the ellipsoid (Somigliana's closed
+    form; free-air gradient 3.086e-6 s^-2: good to about 0.01 % away from mountains and gravity anomalies)."""
+    s2 = np.sin(np.radians(latitude_deg)) ** 2
+    g0 = 9.7803253359 * (1.0 + 0.00193185265241 * s2) / np.sqrt(1.0 - 0.00669437999013 * s2)
+    return float(g0 - 3.086e-6 * height_m)
+
+
+def local_gravity(gravity: float | None, latitude_deg: float | None, height_m: float) -> tuple[float, str]:
+    """The gravity to fit to and where it came from; CalibrationError for a value no place on Earth has."""
+    if gravity is not None and latitude_deg is not None:
+        raise CalibrationError("give --gravity or --latitude, not both")
+    if latitude_deg is not None:
+        if not -90.0 <= latitude_deg <= 90.0:
+            raise CalibrationError(f"--latitude must be between -90 and 90 degrees, got {latitude_deg:g}")
+        g, source = normal_gravity(latitude_deg, height_m), f"WGS 84 normal gravity at {latitude_deg:g} deg"
+    elif gravity is not None:
+        g, source = float(gravity), "given"
+    else:
+        g, source = GRAVITY_M_S2, "assumed (give --latitude for your local gravity: the scale inherits its error)"
+    if not 9.7 <= g <= 9.9:
+        raise CalibrationError(f"gravity {g:g} m/s^2 is not a surface gravity on Earth (9.7-9.9 accepted)")
+    return g, source
+
+
+def calibrate_imu_axes_files(
+    log_path: str | Path,
+    out: str | Path,
+    gravity: float | None = None,
+    latitude_deg: float | None = None,
+    height_m: float = 0.0,
+) -> str:
+    """`vio calibrate imu-axes LOG --out FILE.yaml [--gravity G | --latitude DEG [--height M]]`: fit (module
+    docstring), write the YAML, return the summary."""
     from vio.atomic import write_text
     from vio.errors import OutputError
     from vio.readers import open_capture
@@ -162,8 +199,9 @@ def calibrate_imu_axes_files(log_path: str | Path, out: str | Path) -> str:
     out = Path(out)
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise OutputError(f"{out}: --out names the YAML to write, e.g. calib/imu_axes.yaml")
+    g, source = local_gravity(gravity, latitude_deg, height_m)
     capture = open_capture(log_path, needs=("imu",))
-    fit = fit_acc_axes(capture.imu)
+    fit = fit_acc_axes(capture.imu, g)
     comment = f"vio calibrate imu-axes: {fit.poses} still orientations of {Path(log_path).name}"
     write_text(out, yaml.safe_dump(fit.yaml_dict(comment), sort_keys=False))
     K = fit.correction
@@ -177,6 +215,7 @@ def calibrate_imu_axes_files(log_path: str | Path, out: str | Path) -> str:
             + " %)",
             "axis angles (non-orthogonality) xy / xz / yz: "
             + " / ".join(f"{np.degrees(v):+.3f} deg" for v in (K[0, 1], K[0, 2], K[1, 2])),
+            f"gravity {g:.5f} m/s^2, {source}",
             f"|gravity| misfit RMS {fit.before_rms_m_s2:.4f} -> {fit.residual_rms_m_s2:.4f} m/s^2",
             f"wrote {out} (use it with: vio run CAPTURE --set imu.axes={out})",
         ]

@@ -149,3 +149,23 @@ def test_the_benchmark_of_the_axes_runs_one_seed(tmp_path):
     assert set(row["scale_error"]) == set(VARIANTS) and all(np.isfinite(list(row["scale_error"].values())))
     assert row["axes_left"] < 5e-3
     assert "corrected by imu-axes" in table([row, row])
+
+
+def test_local_gravity_sets_the_scale_of_the_correction(tumble, tmp_path):
+    """K is fitted to the gravity it is given, so the run's scale inherits it: 9.78 instead of 9.81 scales K by
+    9.78 / 9.81. `--latitude` gives WGS 84 normal gravity (9.7803 at the equator, 9.8322 at the poles)."""
+    from vio.calibrate.imu_axes import local_gravity, normal_gravity
+
+    assert normal_gravity(0.0) == pytest.approx(9.7803253, abs=1e-6)
+    assert normal_gravity(90.0) == pytest.approx(9.8321849, abs=1e-6)
+    assert normal_gravity(45.0, 1000.0) == pytest.approx(normal_gravity(45.0) - 3.086e-3)
+    imu = open_capture(tumble, needs=("imu",)).imu
+    K981, K978 = fit_acc_axes(imu, 9.81).correction, fit_acc_axes(imu, 9.78).correction
+    assert np.allclose(K978, K981 * 9.78 / 9.81, atol=1e-6)
+    with pytest.raises(CalibrationError, match="not both"):
+        local_gravity(9.8, 45.0, 0.0)
+    r = _run("calibrate", "imu-axes", str(tumble), "--out", str(tmp_path / "a.yaml"), "--latitude", "47.4")
+    assert r.returncode == 0 and "WGS 84 normal gravity at 47.4 deg" in r.stdout, r.stderr
+    assert yaml.safe_load((tmp_path / "a.yaml").read_text())["gravity_m_s2"] == pytest.approx(normal_gravity(47.4))
+    err = _one_line_error("calibrate", "imu-axes", str(tumble), "--out", str(tmp_path / "b.yaml"), "--gravity", "98.1")
+    assert "not a surface gravity" in err and not (tmp_path / "b.yaml").exists()
