@@ -49,7 +49,7 @@ def isam2_params(cfg: SmootherConfig) -> gtsam.ISAM2Params:
     # A failure is not fatal either way (the estimator rebuilds from the last good state).
     params.setFactorization(cfg.factorization)
     # New factors take the slots of removed ones. A fixed lag removes every factor it marginalises, and without this
-    # iSAM2's factor list kept a null slot for each: 52,000 more a minute on the 10-minute orbit, 600,000 by its end
+    # iSAM2's factor list kept a null slot for each: 52,000 more a minute on the 10-minute orbit, 306,000 by minute six
     # (docs/BENCHMARKS.md, "The fixed lag's factor slots"). iSAM2 alone removes none, so it is unchanged.
     params.findUnusedFactorSlots = True
     return params
