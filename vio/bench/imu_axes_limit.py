@@ -16,6 +16,7 @@ accelerometer's axes"). About 2 s per seed.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -57,8 +58,7 @@ def one_seed(seed: int, folder: Path, duration_s: float = 60.0) -> dict:
     fit = fit_acc_axes(open_capture(tumble, needs=("imu",)).imu)
     T = np.asarray(yaml.safe_load((tumble / "scene" / "scene.yaml").read_text())["imu_errors"]["acc_T"], float)
     M = fit.correction @ T
-    fixed = open_capture(plain.root, needs=("imu",))
-    fixed.imu = corrected(fixed.imu, fit.correction)
+    fixed = dataclasses.replace(plain, imu=corrected(plain.imu, fit.correction))  # the same capture, read once
     errors = [shape_scale(c).scale_error for c in (plain, zeroed, fixed)]
     left = max(float(np.abs(np.diag(M) - 1).max()), float(np.abs(M.T @ M - np.eye(3)).max()) / 2)
     return {"seed": seed, "scale_error": dict(zip(VARIANTS, errors, strict=True)), "axes_left": left}

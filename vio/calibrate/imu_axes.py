@@ -29,7 +29,8 @@ import numpy as np
 import yaml
 from scipy.optimize import least_squares
 
-from vio.errors import CalibrationError
+from vio.atomic import write_text
+from vio.errors import CalibrationError, OutputError
 from vio.kalibr import read_yaml
 from vio.records import GRAVITY_M_S2, ImuSeries
 
@@ -192,8 +193,6 @@ def calibrate_imu_axes_files(
 ) -> str:
     """`vio calibrate imu-axes LOG --out FILE.yaml [--gravity G | --latitude DEG [--height M]]`: fit (module
     docstring), write the YAML, return the summary."""
-    from vio.atomic import write_text
-    from vio.errors import OutputError
     from vio.readers import open_capture
 
     out = Path(out)
