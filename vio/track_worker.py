@@ -5,10 +5,10 @@ docs/BENCHMARKS.md, "The two cores, measured"); a second interpreter does. The w
 and tracks every frame with the same code as the single-process path (`vio.tracking.tracked_frames`, whose tracker
 also picks the keyframes), at a lower priority than the estimator (`run.tracker_nice`), and samples each new track's
 colour (a thread of its own decodes the next `PREFETCH_FRAMES` images meanwhile, on whatever core the estimator
-leaves idle), and sends per
-frame: the tracks, their ages, the new colours and the image only where the estimator needs it (keyframes, for the
-re-identification's descriptors; every frame when a viewer is attached). The pipe is enlarged so that it holds a
-few keyframes while the estimator solves. Results are the single-process path's, frame for frame.
+leaves idle), and sends per frame: the tracks, their ages, the new colours and the image only where the estimator
+needs it (keyframes, for the re-identification's descriptors; every frame when a viewer is attached). The pipe is
+enlarged so that it holds a few keyframes while the estimator solves. Results are the single-process path's, frame
+for frame.
 
 Protocol (length-prefixed pickles, `vio.pipes`): in, one ((capture path, calibration path, options), config,
 frames, every image?); out, per frame ("frame", t_ns, image or None, tracks, ages, new colour ids, their RGB,
