@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from vio.config import ReidentificationConfig
 from vio.descriptors import DESCRIPTOR_BYTES, hamming
@@ -161,9 +162,18 @@ class LandmarkAtlas:
         return idx[~surely_old]
 
     def _candidates(
-        self, world_T_body: np.ndarray, exclude: set[int], alive: Callable[[np.ndarray], np.ndarray]
+        self,
+        world_T_body: np.ndarray,
+        exclude: set[int],
+        alive: Callable[[np.ndarray], np.ndarray],
+        near_px: np.ndarray | None = None,
     ) -> tuple[list[int], np.ndarray, np.ndarray]:
-        """Landmarks visible from world_T_body with a comparable snapshot: ids, (C, 2) pixels, (C, 32) descriptors."""
+        """Landmarks visible from world_T_body with a comparable snapshot: ids, (C, 2) pixels, (C, 32) descriptors.
+
+        With `near_px` ((Q, 2) undistorted px) only the landmarks projecting within `radius_px` of one of those
+        pixels: the others cannot match. Leaving them out before their snapshots are compared makes a keyframe
+        cheaper where a long capture of one scene has piled up landmarks in view; the candidates that remain, their
+        order and their descriptors are those of the whole search (tested)."""
         empty = [], np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
         n, m = self._num_rows, self._num_snaps
         if not n or not m:
@@ -176,13 +186,27 @@ class LandmarkAtlas:
             uv = p_cam[:, :2] / z[:, None] * np.diag(self.K)[:2] + self.K[:2, 2]
         w, h = 2.0 * self.K[0, 2], 2.0 * self.K[1, 2]
         visible = (z > _MIN_DEPTH_M) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        rays = c - self._pos[:n]
+        if near_px is not None:
+            seen = np.flatnonzero(visible)
+            if len(near_px) and len(seen):
+                # a bound a hair wider than the radius (the KD-tree's test is strict); `match` applies the exact one
+                bound = self.cfg.radius_px * (1.0 + 1e-9) + 1e-9
+                d, _ = cKDTree(np.asarray(near_px, float).reshape(-1, 2)).query(uv[seen], distance_upper_bound=bound)
+                visible[seen[~np.isfinite(d)]] = False
+            else:
+                visible[:] = False
+        srow = self._snap_row[:m]
+        cand = np.flatnonzero(visible[srow])  # the snapshots of the landmarks still in question
+        if not len(cand):
+            return empty
+        srow = srow[cand]
+        rows, inverse = np.unique(srow, return_inverse=True)
+        rays = c - self._pos[rows]
         depth = np.linalg.norm(rays, axis=1)
         rays /= np.maximum(depth, 1e-9)[:, None]
-        srow = self._snap_row[:m]
-        cos = np.einsum("ij,ij->i", self._snap_dir[:m], rays[srow])
-        ratio = depth[srow] / self._snap_depth[:m]
-        ok = visible[srow] & (cos >= np.cos(np.radians(self.cfg.max_view_deg)))
+        cos = np.einsum("ij,ij->i", self._snap_dir[cand], rays[inverse])
+        ratio = depth[inverse] / self._snap_depth[cand]
+        ok = cos >= np.cos(np.radians(self.cfg.max_view_deg))
         ok &= (ratio >= 1.0 / MAX_DEPTH_RATIO) & (ratio <= MAX_DEPTH_RATIO)
         slots = np.flatnonzero(ok)
         if not len(slots):
@@ -197,7 +221,7 @@ class LandmarkAtlas:
         if not keep.any():
             return empty
         slots = slots[keep]
-        return self._ids[srow[slots]].tolist(), uv[srow[slots]], self._snap_desc[slots]
+        return self._ids[srow[slots]].tolist(), uv[srow[slots]], self._snap_desc[cand[slots]]
 
     def match(
         self,
@@ -211,12 +235,13 @@ class LandmarkAtlas:
         """Re-identify new tracks (rows of uv_px (N, 2) undistorted px, desc (N, 32), ok (N,)) seen from the
         predicted pose world_T_body; landmarks in `exclude` (seen by their own track now) or not alive (`alive(ids)`:
         a mask) are not candidates. Returns {row: landmark id}, one row per landmark, best (smallest distance) first."""
-        ids, proj, cand_desc = self._candidates(world_T_body, exclude, alive)
+        uv_px = np.asarray(uv_px, float).reshape(-1, 2)
+        ok = np.asarray(ok, bool)
+        ids, proj, cand_desc = self._candidates(world_T_body, exclude, alive, near_px=uv_px[ok])
         if not ids or not len(uv_px):
             return {}
-        uv_px = np.asarray(uv_px, float).reshape(-1, 2)
         near = np.linalg.norm(uv_px[:, None, :] - proj[None, :, :], axis=2) <= self.cfg.radius_px
-        near &= np.asarray(ok, bool)[:, None]
+        near &= ok[:, None]
         rows = np.flatnonzero(near.any(axis=1))
         if not len(rows):
             return {}

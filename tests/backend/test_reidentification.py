@@ -141,6 +141,37 @@ def test_atlas_ratio_test_and_one_track_per_landmark():
     assert atlas.match(pose, two, best_second, np.ones(2, bool), set()) == {0: 100}
 
 
+def test_leaving_out_landmarks_far_from_every_new_track_changes_no_candidate():
+    """`match` compares only the landmarks that project near one of the new tracks: a map of 2,000 landmarks with
+    several snapshots each (some from viewpoints too far to compare, some forgotten), seen from a moved camera.
+    The candidates kept are exactly those of the whole search that lie within the radius of a track, in the same
+    order, with the same pixels and descriptors; the others could never have matched."""
+    rng = np.random.default_rng(11)
+    cfg = ReidentificationConfig()
+    atlas = LandmarkAtlas(K, np.eye(4), cfg)
+    n = 2000
+    pts = np.column_stack([rng.uniform(-1.0, 1.0, n), rng.uniform(-0.2, 1.0, n), rng.uniform(-0.6, 0.6, n)])
+    for j, p in enumerate(pts):
+        atlas.set_position(j, p)
+    for yaw in (0.0, 12.0, 25.0, 40.0):
+        c = (np.sin(np.radians(yaw)) * 1.0, -np.cos(np.radians(yaw)) * 1.0, 0.0)
+        atlas.remember(_look(yaw, c=c), np.arange(n), rng.integers(0, 256, (n, 32), dtype=np.uint8), np.ones(n, bool))
+    for j in range(0, n, 7):
+        atlas.forget(j)
+    pose = _look(8.0, c=(0.14, -0.99, 0.02))
+    queries = np.vstack([_pixels(pose, pts[rng.choice(n, 25, replace=False)]), rng.uniform(0, 640, (5, 2))])
+    queries += rng.normal(0.0, 6.0, queries.shape)
+    alive = lambda ids: ids % 5 != 1  # noqa: E731
+    exclude = set(range(3, n, 11))
+    ids, proj, desc = atlas._candidates(pose, exclude, alive)
+    near = np.linalg.norm(proj[:, None, :] - queries[None, :, :], axis=2).min(axis=1) <= cfg.radius_px
+    assert 0.05 * len(ids) < near.sum() < 0.8 * len(ids)  # the test leaves out a real share of the candidates
+    kept_ids, kept_proj, kept_desc = atlas._candidates(pose, exclude, alive, near_px=queries)
+    assert kept_ids == np.asarray(ids)[near].tolist()
+    assert np.array_equal(kept_proj, proj[near]) and np.array_equal(kept_desc, desc[near])
+    assert atlas._candidates(pose, exclude, alive, near_px=np.zeros((0, 2)))[0] == []
+
+
 def test_atlas_keeps_a_few_snapshots_from_distinct_viewpoints():
     atlas, pts, desc = _atlas()
     for yaw in (2.0, 4.0):  # too close to the first view: no new snapshot
