@@ -65,6 +65,10 @@ class Smoother:
         if self.kind not in ("isam2", "fixed_lag"):
             raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
         self.deferred = self.kind == "fixed_lag" and cfg.background
+        if self.deferred and cfg.hold_start_s > 0:
+            raise ValueError("smoother.hold_start_s does not work with smoother.background")
+        self._holding = self.kind == "fixed_lag" and cfg.hold_start_s > 0
+        self._t0: float | None = None  # fixed lag with a held start: the first timestamp (kept through a reset)
         self.reset()
 
     def reset(self) -> None:
@@ -81,6 +85,7 @@ class Smoother:
         self._stamps: dict[int, float] = {}  # fixed lag: key -> its latest timestamp, s (as the smoother holds it)
         self._num_updates = 0  # gtsam updates since the reset (its relinearisation counter)
         self._held: dict[int, float] = {}  # deferred: key -> its timestamp, held back until the background step
+        self._own: dict[int, float] = {}  # held start: key -> its own timestamp (the smoother may hold another)
 
     def num_variables(self) -> int:
         """Variables in the solver now (fixed lag: the window only)."""
@@ -101,6 +106,8 @@ class Smoother:
         caller built this update's factors (it may marginalise variables they would use): a RuntimeError if not."""
         if self.kind == "fixed_lag" and self.cfg.marginalise_every_s > 0:
             timestamps = {key: self._block(t) for key, t in timestamps.items()}
+        if self._holding:
+            timestamps = self._hold(timestamps)
         if not self.deferred or self._num_updates == 0:
             return self._update(graph, values, timestamps)
         if self.background_due():
@@ -144,6 +151,31 @@ class Smoother:
             del self._stamps[key]
             self._getter_of.pop(key, None)
         return retired
+
+    def _hold(self, timestamps: dict[int, float]) -> dict[int, float]:
+        """The held start (`hold_start_s`): the timestamps that keep the start in the window. gtsam marginalises a
+        variable whose timestamp is older than the newest one minus the lag, so a held variable is given that
+        boundary as its timestamp (the rule is strict: it stays). Nothing leaves before `hold_start_s`; from then
+        on the variables older than `release` leave, `release` moving from the first timestamp at
+        `hold_release_rate` seconds a second until it passes the lag's boundary, where the hold ends and every
+        later update is the plain fixed lag's. Every held variable is re-stamped in each update (a few thousand at
+        most, at the hold's end)."""
+        self._own.update(timestamps)
+        if self._t0 is None:
+            self._t0 = min(timestamps.values())
+        newest = max(self._own.values())
+        boundary = newest - self.cfg.lag_s
+        release = self._t0 + self.cfg.hold_release_rate * max(0.0, newest - self._t0 - self.cfg.hold_start_s)
+        out = dict(timestamps)
+        if newest > self._t0 + self.cfg.hold_start_s and release >= boundary:  # caught up: the plain fixed lag
+            self._holding = False  # from now on, every variable at its own time
+            out.update({key: t for key, t in self._own.items() if key not in out})
+            self._own = {}
+            return out
+        for key, t in self._own.items():
+            out[key] = t if t < release else max(t, boundary)
+        self._own = {key: t for key, t in self._own.items() if t >= release}
+        return out
 
     def _block(self, t_s: float) -> float:
         """A timestamp rounded down to its block of `marginalise_every_s`: variables then leave the window in whole

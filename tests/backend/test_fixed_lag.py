@@ -72,6 +72,37 @@ def test_marginalise_in_blocks():
     assert max(sizes) == 20
 
 
+def test_a_held_start_stays_in_the_window_then_leaves_at_the_release_rate():
+    """`hold_start_s`: poses 0.1 s apart in a 1 s lag, held 3 s, released at 2 s a second. Nothing leaves before
+    3 s; then the oldest leave first, two seconds of capture a second, until the release passes the lag's boundary
+    (at 5 s); from there the window is the plain lag's. What the smoother says it holds is what gtsam holds."""
+    cfg = SmootherConfig(kind="fixed_lag", lag_s=1.0, hold_start_s=3.0, hold_release_rate=2.0)
+    sm = Smoother(cfg)
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    X = gtsam.symbol_shorthand.X
+    left_at: dict[int, float] = {}
+    for k in range(80):
+        t = 0.1 * k + 1e-6
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise) if k == 0 else
+                  gtsam.BetweenFactorPose3(X(k - 1), X(k), gtsam.Pose3(), noise))  # fmt: skip
+        values.insert(X(k), gtsam.Pose3())
+        for key in sm.update(graph, values, {X(k): t}).keys():
+            left_at[gtsam.Symbol(key).index()] = t
+        kept = set(sm.estimate().keys())
+        assert kept == {X(i) for i in range(k + 1) if sm.has(X(i))}
+        if t < 3.0:
+            assert len(kept) == k + 1  # held: nothing has left
+    order = sorted(left_at)
+    assert order == list(range(len(order))) and [left_at[i] for i in order] == sorted(left_at.values())
+    assert min(left_at.values()) >= 3.0
+    assert left_at[20] == pytest.approx(4.1, abs=0.051)  # t = 2.0 s leaves once the release, 2 (t - 3), passes it
+    assert max(i for i in left_at if left_at[i] < 5.0) < 40  # at 5 s the release meets the lag's boundary
+    assert set(sm.estimate().keys()) == {X(k) for k in range(69, 80)}  # then the plain 1 s lag
+    with pytest.raises(ValueError, match="background"):
+        Smoother(SmootherConfig(kind="fixed_lag", hold_start_s=3.0, background=True))
+
+
 def _chain(sm: Smoother, n: int, between_calls=None) -> list[int]:
     """Poses 0.1 s apart in a chain with a prior on the first; `between_calls(k)` after each update. Returns the
     keys each update marginalised, in order."""
