@@ -65,9 +65,10 @@ class Smoother:
         if self.kind not in ("isam2", "fixed_lag"):
             raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
         self.deferred = self.kind == "fixed_lag" and cfg.background
-        if self.deferred and cfg.hold_start_s > 0:
-            raise ValueError("smoother.hold_start_s does not work with smoother.background")
         self._holding = self.kind == "fixed_lag" and cfg.hold_start_s > 0
+        if self.deferred and self._holding:  # the background step holds timestamps back its own way
+            log.warning("smoother.hold_start_s is ignored with smoother.background: the start is not held")
+            self._holding = False
         self._t0: float | None = None  # fixed lag with a held start: the first timestamp (kept through a reset)
         self.reset()
 

@@ -25,7 +25,9 @@ def test_the_pipeline_runs_the_background_step_after_each_keyframe(sim_capture, 
 
     monkeypatch.setattr(be.VioEstimator, "_step", step)
     monkeypatch.setattr(be.VioEstimator, "background", background)
-    cfg = load_config(None, ["run.progress=false", "smoother.background=true"], presets=["fixed_lag"])
+    cfg = load_config(
+        None, ["run.progress=false", "smoother.background=true", "smoother.hold_start_s=0"], presets=["fixed_lag"]
+    )
     res = run_capture(cap, tmp_path / "out", cfg)
     assert res.summary["status"] == "ok"
     run = json.loads((tmp_path / "out" / "run.json").read_text())
