@@ -310,8 +310,15 @@ def _build_section(section: str, cls: type, values: dict[str, Any]) -> Any:
         allowed = _CHOICES.get(f"{section}.{key}")
         if allowed is not None and value not in allowed:
             raise ConfigError(f"config {section}.{key}: {value!r} is not one of {', '.join(allowed)}")
+        above = _ABOVE.get(f"{section}.{key}")
+        if above is not None and not value > above[0]:
+            raise ConfigError(f"config {section}.{key}: must be above {above[0]:g} ({above[1]}), got {value!r}")
     return cls(**kwargs)
 
+
+_ABOVE = {  # keys whose value must exceed a bound, and why
+    "smoother.hold_release_rate": (1.0, "the held start must leave faster than the capture goes on, or it never ends"),
+}
 
 _CHOICES = {  # keys whose value is one of a few names
     "estimator.mode": ("visual_inertial", "vision_only"),

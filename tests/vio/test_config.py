@@ -91,3 +91,11 @@ def test_cli_names_an_unknown_preset_and_a_moved_key_in_one_line(tmp_path):
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
         assert res.returncode == 2 and msg in res.stderr and "Traceback" not in res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_a_held_start_that_would_never_end_is_refused():
+    """The held start leaves at `hold_release_rate` seconds of capture a second: at 1 or less it never catches up
+    with the lag and the window would grow with the capture."""
+    assert load_config(None, ["smoother.hold_release_rate=1.5"]).smoother.hold_release_rate == 1.5
+    with pytest.raises(ConfigError, match="hold_release_rate: must be above 1"):
+        load_config(None, ["smoother.hold_release_rate=1.0"], presets=["fixed_lag"])
