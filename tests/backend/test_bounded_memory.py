@@ -21,10 +21,9 @@ from backend.segments import TrackSegments
 from backend.uncertainty import scale_uncertainty
 from frontend.preintegration import ImuPreintegrator
 from tests.backend.test_estimator import synthetic_run
+from tests.backend.test_fixed_lag import _fixed_lag
 from tests.backend.test_uncertainty import _two_laps
-from vio.config import ImuConfig, LandmarkConfig, load_config
-
-NO_HOLD = "smoother.hold_start_s=0"  # the preset without its held start: these captures are shorter than it
+from vio.config import ImuConfig, LandmarkConfig
 
 
 def test_pruned_views_keep_each_runs_start_and_the_first_view():
@@ -92,7 +91,7 @@ def test_pruning_changes_no_estimate(long_data, monkeypatch, unique):
     """Views older than every window are dropped every few keyframes (and, when track ids are never reused, the
     lost tracks and their segments): the same states and landmarks to the bit."""
     data = _unique_ids(long_data) if unique else long_data
-    cfg = load_config(None, [NO_HOLD], presets=["fixed_lag"])
+    cfg = _fixed_lag()
     monkeypatch.setattr(deferred_module, "PRUNE_EVERY_KEYFRAMES", 10**9)
     kept = _run(data, cfg, unique)
     monkeypatch.setattr(deferred_module, "PRUNE_EVERY_KEYFRAMES", 7)
@@ -114,7 +113,7 @@ def test_the_fixed_lag_reuses_the_slots_of_the_factors_it_removed(long_data, mon
     """Every factor the fixed lag marginalises leaves iSAM2's factor list; new factors take those slots, so the list
     stays the size of the window instead of growing by a null slot for every factor ever removed. The estimate is
     the same up to rounding (the factors' order in the list differs)."""
-    cfg = load_config(None, ["smoother.lag_s=2.0", NO_HOLD], presets=["fixed_lag"])
+    cfg = _fixed_lag("smoother.lag_s=2.0")
     reusing = _run(long_data, cfg, False)
     params = smoother_module.isam2_params
 
@@ -191,8 +190,8 @@ def test_fixed_lag_without_refine_lets_old_factors_go_and_keeps_them_for_refine(
     processes), the run's sigma combines them with the rest's; `--refine` keeps every factor."""
     monkeypatch.setattr(estimator_module, "ScaleChunks", functools.partial(ScaleChunks, chunk_keyframes=20))
     lag = "smoother.lag_s=2.0"
-    dropping = _run(long_data, load_config(None, [lag, NO_HOLD], presets=["fixed_lag"]), False)
-    keeping = _run(long_data, load_config(None, [lag, NO_HOLD, "run.refine=true"], presets=["fixed_lag"]), False)
+    dropping = _run(long_data, _fixed_lag(lag), False)
+    keeping = _run(long_data, _fixed_lag(lag, "run.refine=true"), False)
     chunks = dropping._chunks
     assert chunks is not None and chunks.start >= 40 and keeping._chunks is None
     assert len(chunks._pending) == chunks.start // 20  # computed in forks, answers not read yet
