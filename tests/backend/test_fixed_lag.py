@@ -155,7 +155,7 @@ def test_background_step_takes_the_relinearisation_and_the_marginalisation_out_o
 def test_background_steps_left_to_the_estimator_give_the_same_answer(data):
     """The pipeline runs the background step after each keyframe; a caller that does not gets it at the start of
     the next keyframe instead, with the same estimate to the bit."""
-    cfg = _fixed_lag("smoother.lag_s=1.0", "smoother.background=true", "smoother.relinearize_skip=2")  # a step every 3
+    cfg = _fixed_lag("smoother.lag_s=1.0", "smoother.background=true", "smoother.relinearize_skip=2")  # as measured
     cam, imu, cal, t_kf, tracks, gt = data
     ests = []
     for call in (True, False):
