@@ -89,7 +89,11 @@ def _run(data, cfg, unique: bool):
 @pytest.mark.parametrize("unique", [False, True])
 def test_pruning_changes_no_estimate(long_data, monkeypatch, unique):
     """Views older than every window are dropped every few keyframes (and, when track ids are never reused, the
-    lost tracks and their segments): the same states and landmarks to the bit."""
+    lost tracks and their segments): the same states and landmarks, to a nanometre. Not to the bit: gtsam's
+    fixed-lag update is not bit-reproducible within one process (two runs of the same estimator, same factors and
+    values in every update, read 2e-13 m apart from update 70 on in one of a few repeats with the preset's
+    relinearize_skip 4: an order that depends on where gtsam's cliques lie in memory). A pruned view a window
+    still used would move the estimate by far more."""
     data = _unique_ids(long_data) if unique else long_data
     cfg = _fixed_lag()
     monkeypatch.setattr(deferred_module, "PRUNE_EVERY_KEYFRAMES", 10**9)
@@ -104,9 +108,12 @@ def test_pruning_changes_no_estimate(long_data, monkeypatch, unique):
     a, b = kept.states(), pruned.states()
     assert len(a) == len(b) > 60
     for sa, sb in zip(a, b, strict=True):
-        assert np.array_equal(sa.world_T_body, sb.world_T_body) and np.array_equal(sa.v_world, sb.v_world)
+        assert np.allclose(sa.world_T_body, sb.world_T_body, rtol=0, atol=1e-9)
+        assert np.allclose(sa.v_world, sb.v_world, rtol=0, atol=1e-9)
     la, lb = kept.landmarks(), pruned.landmarks()
-    assert np.array_equal(la.track_ids, lb.track_ids) and np.array_equal(la.points_world, lb.points_world)
+    assert np.array_equal(la.track_ids, lb.track_ids) and np.allclose(
+        la.points_world, lb.points_world, rtol=0, atol=1e-9
+    )
 
 
 def test_the_fixed_lag_reuses_the_slots_of_the_factors_it_removed(long_data, monkeypatch):
