@@ -18,12 +18,16 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from vio.model.records import View
+from vio.sim.part_render import PartSurface
+from vio.sim.parts import Part
+from vio.sim.scene import PlacedPart
 
 BANDS_PX = (0.0, 2.0, 4.0, 8.0, 16.0, np.inf)  # distance to the nearest edge, px
 NEAR_EDGE_PX = 4.0  # "near" a silhouette or a crease
@@ -31,35 +35,25 @@ OFF_M = 1e-3  # a depth this far from the truth is counted as off
 _CREASE_COS = 0.99  # neighbouring pixels whose normals are further apart than this straddle a crease (8 deg)
 
 
-def true_depth(
-    vertices_m: np.ndarray, faces: np.ndarray, world_T_part: np.ndarray, view: View
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def true_depth(placed: PlacedPart, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(z-depth (H, W) m, part mask (H, W), unit normals (H, W, 3) of the part's faces, zero off the part) of `view`:
-    the mesh (part frame, m) placed by `world_T_part`, and the plane z = 0 of the part frame (its base's table);
-    inf where a ray meets neither."""
-    from embreex import rtcore_scene as rtcs
-    from embreex.mesh_construction import TriangleMesh
-
-    tri = (np.asarray(vertices_m, float) @ world_T_part[:3, :3].T + world_T_part[:3, 3])[np.asarray(faces)]
-    scene = rtcs.EmbreeScene()
-    TriangleMesh(scene, tri.astype(np.float32))
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-30)[:, None]
+    the placed part, ray-cast as the simulator renders it (`PartSurface`), and the plane z = 0 of the part frame
+    (its base's table); inf where a ray meets neither."""
+    surface = PartSurface(replace(placed, surface="plain"), 0)  # plain: no speckle dots to place
     w, h = view.size
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     K = np.asarray(view.K, float)
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
     R, t = view.world_T_cam[:3, :3], view.world_T_cam[:3, 3]
     d = rays @ R.T  # world direction per pixel, z-component 1 in the camera: ray parameter = z-depth
-    hit = scene.run(np.tile(t.astype(np.float32), (len(d), 1)), d.astype(np.float32), output=1)
-    prim = hit["primID"].astype(np.int64)
+    t_part, prim = surface.intersect(t, d, np.full(len(d), np.inf))
     part = prim >= 0
-    up, base = world_T_part[:3, 2], world_T_part[:3, 3]
+    up, base = placed.world_T_part[:3, 2], placed.world_T_part[:3, 3]
     along = d @ up
     with np.errstate(divide="ignore", invalid="ignore"):
         t_plane = np.where(along < 0, (base - t) @ up / along, np.inf)
-    z = np.where(part, hit["tfar"], np.where(t_plane > 0, t_plane, np.inf))
-    normals = np.where(part[:, None], n[np.maximum(prim, 0)], 0.0)
+    z = np.where(part, t_part, np.where(t_plane > 0, t_plane, np.inf))
+    normals = np.where(part[:, None], surface.normals[np.maximum(prim, 0)], 0.0)
     return z.reshape(h, w), part.reshape(h, w), normals.reshape(h, w, 3)
 
 
@@ -148,11 +142,12 @@ def depth_truth(capture: str | Path, num_views: int = 6, margin_m: float = 0.01)
     refs = list(range(0, len(views), step))
     refs = refs[:: max(1, len(refs) // max(num_views, 1))][:num_views]
     root = Path(capture) / "scene"
-    vertices_mm, faces = read_stl_mesh(root / "cad.stl")
-    world_T_part = np.asarray(yaml.safe_load((root / "part_pose.yaml").read_text(encoding="utf-8"))["world_T_part"])
+    vertices_mm, faces = read_stl_mesh(root / "cad.stl")  # the part frame as simulated
+    pose = yaml.safe_load((root / "part_pose.yaml").read_text(encoding="utf-8"))
+    placed = PlacedPart(Part("cad", vertices_mm, faces, "", {}), np.asarray(pose["world_T_part"], float))
     errors = DepthErrors()
     for dm in dense.depth_maps(views, part_roi(capture, margin_m), dense.DenseConfig(), references=refs):
-        z, part, normals = true_depth(vertices_mm * 1e-3, faces, world_T_part, views[dm.view])
+        z, part, normals = true_depth(placed, views[dm.view])
         errors.add(dm.depth_m, z, part, normals)
     return {"capture": str(capture), "views": refs, **errors.table()}
 

@@ -7,6 +7,7 @@ import numpy as np
 from vio.bench.depth_truth import DepthErrors, edge_distance, true_depth
 from vio.model.records import View
 from vio.sim.parts import build_part
+from vio.sim.scene import PlacedPart
 
 K = np.array([[240.0, 0.0, 127.5], [0.0, 240.0, 95.5], [0.0, 0.0, 1.0]])
 
@@ -22,22 +23,24 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return T
 
 
-def _cube_view(eye) -> tuple[View, np.ndarray, np.ndarray]:
-    part = build_part("cube")  # 76.2 mm, base on z = 0 of its frame
-    view = View("v", np.zeros((192, 256), np.uint8), K, _look_at(np.asarray(eye, float), np.array([0.0, 0.0, 0.038])))
-    return view, part.vertices_mm * 1e-3, part.faces
+def _cube_view(eye) -> View:
+    return View("v", np.zeros((192, 256), np.uint8), K, _look_at(np.asarray(eye, float), np.array([0.0, 0.0, 0.038])))
+
+
+def _cube(world_T_part: np.ndarray) -> PlacedPart:
+    return PlacedPart(build_part("cube"), world_T_part)  # 76.2 mm, base on z = 0 of its frame
 
 
 def test_true_depth_of_the_top_face_and_the_table_seen_from_above():
-    view, vertices, faces = _cube_view([0.0, 1e-4, 0.3])  # straight down (a hair off the pole for the look-at)
+    view = _cube_view([0.0, 1e-4, 0.3])  # straight down (a hair off the pole for the look-at)
     pose = np.eye(4)
-    z, part, normals = true_depth(vertices, faces, pose, view)
+    z, part, normals = true_depth(_cube(pose), view)
     assert part[96, 128] and abs(z[96, 128] - (0.3 - 0.0762)) < 1e-6  # the top face
     np.testing.assert_allclose(normals[96, 128], [0.0, 0.0, 1.0], atol=1e-6)
     assert not part[2, 2] and abs(z[2, 2] - 0.3) < 2e-3  # the table (z-depth grows off-axis only by rounding)
     lifted = pose.copy()
     lifted[2, 3] = 0.01  # the part and its table 1 cm higher: both 1 cm nearer
-    z2, part2, _ = true_depth(vertices, faces, lifted, view)
+    z2, part2, _ = true_depth(_cube(lifted), view)
     np.testing.assert_allclose(z2[part & part2], z[part & part2] - 0.01, atol=1e-6)
     table = ~part & ~part2  # the lifted part's silhouette is a little wider
     assert table.mean() > 0.5
@@ -45,8 +48,8 @@ def test_true_depth_of_the_top_face_and_the_table_seen_from_above():
 
 
 def test_errors_are_counted_by_distance_to_the_nearest_edge():
-    view, vertices, faces = _cube_view([0.25, -0.25, 0.3])  # three faces and the table in sight
-    z, part, normals = true_depth(vertices, faces, np.eye(4), view)
+    view = _cube_view([0.25, -0.25, 0.3])  # three faces and the table in sight
+    z, part, normals = true_depth(_cube(np.eye(4)), view)
     dist = edge_distance(part, normals)
     crease = edge_distance(part, normals, "crease")
     assert np.isfinite(crease).all() and (crease[part] < 1.5).sum() > 50  # two creases cross the image
