@@ -35,11 +35,16 @@ OFF_M = 1e-3  # a depth this far from the truth is counted as off
 _CREASE_COS = 0.99  # neighbouring pixels whose normals are further apart than this straddle a crease (8 deg)
 
 
-def true_depth(placed: PlacedPart, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def part_surface(placed: PlacedPart) -> PartSurface:
+    """The placed part as the simulator ray-casts it, without its speckle (nothing to shade here)."""
+    return PartSurface(replace(placed, surface="plain"), 0)
+
+
+def true_depth(surface: PartSurface, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(z-depth (H, W) m, part mask (H, W), unit normals (H, W, 3) of the part's faces, zero off the part) of `view`:
-    the placed part, ray-cast as the simulator renders it (`PartSurface`), and the plane z = 0 of the part frame
-    (its base's table); inf where a ray meets neither."""
-    surface = PartSurface(replace(placed, surface="plain"), 0)  # plain: no speckle dots to place
+    the part of `surface` (`part_surface`), and the plane z = 0 of the part frame (its base's table); inf where a
+    ray meets neither."""
+    placed = surface.placed
     w, h = view.size
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     K = np.asarray(view.K, float)
@@ -144,10 +149,10 @@ def depth_truth(capture: str | Path, num_views: int = 6, margin_m: float = 0.01)
     root = Path(capture) / "scene"
     vertices_mm, faces = read_stl_mesh(root / "cad.stl")  # the part frame as simulated
     pose = yaml.safe_load((root / "part_pose.yaml").read_text(encoding="utf-8"))
-    placed = PlacedPart(Part("cad", vertices_mm, faces, "", {}), np.asarray(pose["world_T_part"], float))
+    surface = part_surface(PlacedPart(Part("cad", vertices_mm, faces, "", {}), np.asarray(pose["world_T_part"], float)))
     errors = DepthErrors()
     for dm in dense.depth_maps(views, part_roi(capture, margin_m), dense.DenseConfig(), references=refs):
-        z, part, normals = true_depth(placed, views[dm.view])
+        z, part, normals = true_depth(surface, views[dm.view])
         errors.add(dm.depth_m, z, part, normals)
     return {"capture": str(capture), "views": refs, **errors.table()}
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vio.bench.depth_truth import DepthErrors, edge_distance, true_depth
+from vio.bench.depth_truth import DepthErrors, edge_distance, part_surface, true_depth
 from vio.model.records import View
 from vio.sim.parts import build_part
 from vio.sim.scene import PlacedPart
@@ -27,8 +27,8 @@ def _cube_view(eye) -> View:
     return View("v", np.zeros((192, 256), np.uint8), K, _look_at(np.asarray(eye, float), np.array([0.0, 0.0, 0.038])))
 
 
-def _cube(world_T_part: np.ndarray) -> PlacedPart:
-    return PlacedPart(build_part("cube"), world_T_part)  # 76.2 mm, base on z = 0 of its frame
+def _cube(world_T_part: np.ndarray):
+    return part_surface(PlacedPart(build_part("cube"), world_T_part))  # 76.2 mm, base on z = 0 of its frame
 
 
 def test_true_depth_of_the_top_face_and_the_table_seen_from_above():
