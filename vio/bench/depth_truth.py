@@ -92,7 +92,8 @@ class DepthErrors:
         """One view: its depth map (NaN unknown) against the true depth of `true_depth`."""
         found = np.isfinite(depth)
         err = np.where(found & part, depth - z, np.nan)
-        dist = edge_distance(part, normals)
+        d_sil, d_crease = edge_distance(part, normals, "sil"), edge_distance(part, normals, "crease")
+        dist = np.minimum(d_sil, d_crease)  # to the nearest edge of either kind
         for k in range(len(BANDS_PX) - 1):
             band = part & (dist >= BANDS_PX[k]) & (dist < BANDS_PX[k + 1])
             e = err[band & found]
@@ -100,7 +101,6 @@ class DepthErrors:
             self.found[k] += len(e)
             self.off[k] += int((np.abs(e) > OFF_M).sum())
             self.errors[k].append(np.abs(e))
-        d_sil, d_crease = edge_distance(part, normals, "sil"), edge_distance(part, normals, "crease")
         for name, d, other in (("silhouette", d_sil, d_crease), ("crease", d_crease, d_sil)):
             near = part & (d < NEAR_EDGE_PX) & (d < other)  # nearer to an edge of this kind than of the other
             e = err[near & found]
