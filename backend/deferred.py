@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from backend.keys import B
+from backend.keys import B, L, V, X
 from backend.smoother import SolverFailure
 
 PRUNE_EVERY_KEYFRAMES = 50  # old track views and lost tracks' segments are forgotten this often (bounded memory)
@@ -44,7 +44,9 @@ def background(est: Any) -> None:
         worked = True
         k = st.last_k
         try:
-            marginalised = st.smoother.background()
+            keys = [X(k), V(k), B(k), *(L(j) for j, kk in st.last_obs.items() if kk == k)]
+            newest = st.smoother.estimate_keys([key for key in keys if st.smoother.has(key)])
+            marginalised = st.smoother.background(newest)
             values = st.smoother.estimate_keys(st.recent_keys(k))
             st.dirty = True
             for j, p in est.old.keep(marginalised).items():

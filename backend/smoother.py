@@ -66,9 +66,6 @@ class Smoother:
             raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
         self.deferred = self.kind == "fixed_lag" and cfg.background
         self._holding = self.kind == "fixed_lag" and cfg.hold_start_s > 0
-        if self.deferred and self._holding:  # the background step holds timestamps back its own way
-            log.warning("smoother.hold_start_s is ignored with smoother.background: the start is not held")
-            self._holding = False
         self._t0: float | None = None  # fixed lag with a held start: the first timestamp (kept through a reset)
         self.reset()
 
@@ -102,9 +99,11 @@ class Smoother:
         """Add factors and new variables; timestamps (s) are used by the fixed-lag smoother only. Returns the last
         estimate of the variables that this update marginalised (fixed lag; always empty for iSAM2).
 
-        Deferred (`smoother.background`): the update neither relinearises nor marginalises; timestamps newer than
-        the smoother's newest are held back for the background step. A step that is due must have run before the
-        caller built this update's factors (it may marginalise variables they would use): a RuntimeError if not."""
+        Deferred (`smoother.background`): the update does not relinearise, and with `background_marginalises` it
+        does not marginalise either: a timestamp newer than the smoother's newest is given that newest, one older
+        than its lag's boundary (the held start's released variables) that boundary, and the true one is held back
+        for the background step. A step that is due must have run before the caller built this update's factors
+        (it may marginalise variables they would use): a RuntimeError if not."""
         if self.kind == "fixed_lag" and self.cfg.marginalise_every_s > 0:
             timestamps = {key: self._block(t) for key, t in timestamps.items()}
         if self._holding:
@@ -113,22 +112,39 @@ class Smoother:
             return self._update(graph, values, timestamps)
         if self.background_due():
             raise RuntimeError("the smoother's background step is due: run background() before building the update")
-        newest = max(self._stamps.values(), default=math.inf) if self.cfg.background_marginalises else math.inf
+        if not self.cfg.background_marginalises:
+            return self._update(graph, values, timestamps)
+        newest = max(self._stamps.values(), default=math.inf)
+        boundary = newest - self.cfg.lag_s  # gtsam's rule is strict: a variable stamped here stays
+        out: dict[int, float] = {}
         for key, t in timestamps.items():
-            if t > newest:
+            out[key] = min(max(t, boundary), newest)
+            if out[key] != t:
                 self._held[key] = t
-        return self._update(graph, values, {key: min(t, newest) for key, t in timestamps.items()})
+            else:
+                self._held.pop(key, None)  # seen again: an older held stamp must not marginalise it later
+        return self._update(graph, values, out)
 
     def background_due(self) -> bool:
         """Deferred: True when the background step should run now (after every `relinearize_skip` keyframes)."""
         n = self.cfg.relinearize_skip + 1
         return self.deferred and self._num_updates > 0 and (self._num_updates + 1) % n == 0
 
-    def background(self) -> gtsam.Values:
+    def background(self, newest: gtsam.Values | None = None) -> gtsam.Values:
         """Deferred: relinearise the window and marginalise what left the lag with the held-back timestamps (one
-        gtsam update without new factors); returns the last estimate of what it marginalised, as `update` does."""
+        gtsam update); returns the last estimate of what it marginalised, as `update` does.
+
+        `newest`: the latest keyframe's variables and the landmarks it saw, at their estimates. Each gets a prior
+        of no weight (`NO_WEIGHT` sigma) in this update, so that iSAM2, which eliminates the variables of an
+        update's factors last, keeps them at the top of the tree, where the next keyframe's factors attach. An
+        update without factors leaves the order to COLAMD alone (a step that relinearises most of the window
+        re-eliminates all of it), and the next keyframe's update then cost 48 ms instead of 8.5 ms in the median
+        on the 60 s orbit's first 36 s (docs/BENCHMARKS.md, "The held start in the background")."""
         held, self._held = self._held, {}
-        return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held)
+        graph = gtsam.NonlinearFactorGraph()
+        for key in [] if newest is None else newest.keys():
+            graph.add(_no_weight_prior(key, newest))
+        return self._update(graph, gtsam.Values(), held)
 
     def _update(
         self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, timestamps: dict[int, float]
@@ -226,6 +242,22 @@ class Smoother:
             return self._isam.calculateEstimate()
         except RuntimeError as exc:
             raise SolverFailure(first_line(exc)) from exc
+
+
+NO_WEIGHT = 1e6  # sigma of the background step's priors: 1e-12 of information against about 1e4-1e8 per variable
+
+
+def _no_weight_prior(key: int, values: gtsam.Values) -> gtsam.NonlinearFactor:
+    """A prior of no practical weight on a pose, velocity, bias or landmark (`Smoother.background`)."""
+    kind = chr(gtsam.Symbol(key).chr())
+    if kind == "x":
+        return gtsam.PriorFactorPose3(key, values.atPose3(key), gtsam.noiseModel.Isotropic.Sigma(6, NO_WEIGHT))
+    if kind == "b":
+        noise = gtsam.noiseModel.Isotropic.Sigma(6, NO_WEIGHT)
+        return gtsam.PriorFactorConstantBias(key, values.atConstantBias(key), noise)
+    if kind == "l":
+        return gtsam.PriorFactorPoint3(key, values.atPoint3(key), gtsam.noiseModel.Isotropic.Sigma(3, NO_WEIGHT))
+    return gtsam.PriorFactorVector(key, values.atVector(key), gtsam.noiseModel.Isotropic.Sigma(3, NO_WEIGHT))
 
 
 _GETTERS = {"x": "calculateEstimatePose3", "v": "calculateEstimateVector", "b": "calculateEstimateConstantBias"}

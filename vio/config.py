@@ -126,7 +126,7 @@ class SmootherConfig:
     background_marginalises: bool = True
     # fixed lag only: nothing is marginalised in the capture's first hold_start_s seconds (the window holds every
     # variable while the scale, gravity and biases settle), then the held start leaves at hold_release_rate seconds of
-    # capture per second until the window is lag_s again (0: no hold). Not with background. Measured in
+    # capture per second until the window is lag_s again (0: no hold). Measured in
     # docs/BENCHMARKS.md ("The fixed lag's start")
     hold_start_s: float = 0.0
     hold_release_rate: float = 2.0
