@@ -44,7 +44,7 @@ def background(est: Any) -> None:
         worked = True
         k = st.last_k
         try:
-            keys = [X(k), V(k), B(k), *(L(j) for j, kk in st.last_obs.items() if kk == k)]
+            keys = [X(k), V(k), B(k), *(L(j) for j in st.landmarks_last_seen_at(k))]
             newest = st.smoother.estimate_keys([key for key in keys if st.smoother.has(key)])
             marginalised = st.smoother.background(newest)
             values = st.smoother.estimate_keys(st.recent_keys(k))

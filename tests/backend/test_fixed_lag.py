@@ -287,3 +287,23 @@ def test_the_background_step_keeps_the_newest_keyframe_at_the_top_of_the_tree():
         diff = (a.atPose3(key).translation() - b.atPose3(key).translation()) if gtsam.Symbol(key).chr() == ord("x") \
             else (a.atPoint3(key) - b.atPoint3(key))  # fmt: skip
         assert np.abs(diff).max() < 1e-9
+
+
+def test_the_landmarks_last_seen_at_a_keyframe_are_what_a_scan_of_last_obs_gives():
+    """`GraphState.landmarks_last_seen_at` (the background step's landmarks) against the scan it replaces, after
+    views added out of order (a late admission adds views to older keyframes)."""
+    import backend.factors as fb
+    from backend.graph_state import GraphState
+    from tests.backend.test_time_offset import _camera
+
+    st = GraphState(Smoother(SmootherConfig()), fb.calibration(_camera()), fb.PixelNoise(1.0, 0.0, 1.345), 30, print)
+    rng = np.random.default_rng(4)
+    graph = gtsam.NonlinearFactorGraph()
+    for k in range(12):
+        st.t_ns[k] = k * 100_000_000
+    for _ in range(400):
+        k, j = int(rng.integers(12)), int(rng.integers(60))
+        st.add_projection(graph, k, j, np.array([320.0, 240.0]))
+    for k in range(12):
+        assert st.landmarks_last_seen_at(k) == [j for j, kk in st.last_obs.items() if kk == k]
+    assert sum(len(st.landmarks_last_seen_at(k)) for k in range(12)) == len(st.last_obs) == 60
