@@ -11,6 +11,12 @@ resident memory MiB; the whole run's wall time, real-time factor, peak memory, t
 ground truth when the capture has one; the smoother's background steps between keyframes, `smoother.background`)
 and `cost.png` (latency and memory over the capture).
 
+Replay runs ahead of real time, so a keyframe's update time leaves out the wait behind the work before it (a
+background step that outlasts the gap to the next keyframe delays it). `live_*` gives each keyframe's latency had
+the frames come at their capture times to a main thread as fast as this run's (`live_latency`, from the wall
+intervals of the updates and the background steps in the run's main thread); the main thread's other work per
+frame is left out.
+
 Wall-clock latencies are only comparable between runs made under the same load (the load average at the start and
 the end is recorded beside them); CPU latencies much less depend on what else the machine runs.
 """
@@ -97,6 +103,66 @@ def per_minute(t_s: np.ndarray, values: np.ndarray, minute_s: float = 60.0) -> l
     return out
 
 
+class MainThreadTimeline:
+    """Wall intervals of the estimator's work in the run's main thread: each keyframe's update and each background
+    step between keyframes (`VioEstimator.add_keyframe`, `VioEstimator.background`; a background step run inside a
+    keyframe's update, when the caller did not run it, counts as that update's)."""
+
+    def __init__(self) -> None:
+        self.keyframes: list[tuple[int, float]] = []  # (keyframe time ns, update wall s)
+        self.after: list[float] = []  # background wall s after each keyframe, before the next one
+        self._inside = False
+
+    def __enter__(self) -> MainThreadTimeline:
+        from backend.estimator import VioEstimator
+
+        self._saved = (VioEstimator.add_keyframe, VioEstimator.background)
+        add_keyframe, background = self._saved
+        timeline = self
+
+        def timed_add_keyframe(est: Any, t_ns: int, *args: Any, **kwargs: Any) -> Any:
+            t0 = time.perf_counter()
+            timeline._inside = True
+            try:
+                return add_keyframe(est, t_ns, *args, **kwargs)
+            finally:
+                timeline._inside = False
+                timeline.keyframes.append((int(t_ns), time.perf_counter() - t0))
+                timeline.after.append(0.0)
+
+        def timed_background(est: Any) -> None:
+            t0 = time.perf_counter()
+            try:
+                background(est)
+            finally:
+                if not timeline._inside and timeline.after:
+                    timeline.after[-1] += time.perf_counter() - t0
+
+        VioEstimator.add_keyframe, VioEstimator.background = timed_add_keyframe, timed_background
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        from backend.estimator import VioEstimator
+
+        VioEstimator.add_keyframe, VioEstimator.background = self._saved
+
+
+def live_latency(arrive_s: np.ndarray, update_s: np.ndarray, after_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each keyframe's latency had the frames come at their capture times (`arrive_s`) to a main thread as fast as
+    this run's: the keyframe's update starts when its frame has come and the thread has finished the previous
+    keyframe and the background work after it (`after_s`), and its latency runs from its capture time to the end of
+    its update. Returns (latency s, wait s: how long it queued behind earlier work). Replay runs ahead of real time,
+    so its own update times leave out this queueing."""
+    latency, wait = np.empty(len(arrive_s)), np.empty(len(arrive_s))
+    free = -np.inf
+    for i, (a, d, b) in enumerate(zip(arrive_s, update_s, after_s, strict=True)):
+        start = max(a, free)
+        wait[i] = start - a
+        latency[i] = start + d - a
+        free = start + d + b
+    return latency, wait
+
+
 def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -> dict[str, Any]:
     """Run the estimator on `capture` into `out/run` and return the cost record (see the module docstring)."""
     from vio import pipeline
@@ -123,9 +189,10 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
 
         pipeline.HealthMonitor = TaggingMonitor
         try:
-            t_wall = time.perf_counter()
-            result = pipeline.run_capture(capture, out / "run", cfg)
-            wall_s = time.perf_counter() - t_wall
+            with MainThreadTimeline() as timeline:
+                t_wall = time.perf_counter()
+                result = pipeline.run_capture(capture, out / "run", cfg)
+                wall_s = time.perf_counter() - t_wall
         finally:
             pipeline.HealthMonitor = monitor
     stats = result.stats
@@ -136,8 +203,17 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
     mem, end = samples[samples[:, 2] == 0, :2], samples[samples[:, 2] == 1, 1]
     minutes = per_minute(t_s, steps)
     cpu = per_minute(t_s, np.asarray(stats.step_cpu_ms, float))
+    kf = np.asarray([t for t, _ in timeline.keyframes], np.int64)
+    live_s, wait_s = live_latency(
+        (kf - t0_ns) * 1e-9, np.asarray([d for _, d in timeline.keyframes]), np.asarray(timeline.after)
+    )
+    live_t = (kf[1:] - t0_ns) * 1e-9  # the first keyframe's update is the whole start window, as in keyframe_ms
+    live = per_minute(live_t, 1e3 * live_s[1:])
     for row, row_cpu in zip(minutes, cpu, strict=True):
         row["cpu"] = {q: row_cpu[q] for q in ("p50", "p95", "p99", "max")}
+        row["live"] = next(
+            ({q: r[q] for q in ("p50", "p95", "p99", "max")} for r in live if r["minute"] == row["minute"]), None
+        )
         m = row["minute"]
         inside = mem[(mem[:, 0] >= (m - 1) * 60.0) & (mem[:, 0] < m * 60.0), 1]
         row["rss_peak_mib"] = float(inside.max()) if inside.size else float("nan")
@@ -165,6 +241,11 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "keyframe_ms": steps.round(2).tolist(),
         "keyframe_cpu_ms": np.round(stats.step_cpu_ms, 2).tolist(),
         "background": _background(stats.background_ms),
+        # had the frames come at their capture times (`live_latency`): per keyframe, ms, from the second keyframe
+        "live_t_s": live_t.round(3).tolist(),
+        "live_ms": (1e3 * live_s[1:]).round(2).tolist(),
+        "live_wait_ms": (1e3 * wait_s[1:]).round(2).tolist(),
+        "background_after_ms": (1e3 * np.asarray(timeline.after[1:])).round(2).tolist(),  # after each keyframe
         "memory": mem.round(2).tolist(),  # (capture time s, resident MiB) while the frames are read
         "end_memory": samples[samples[:, 2] == 1, :2].round(2).tolist(),  # the same after the last frame
         "children_memory": np.round(sampler.children, 2).tolist(),  # (capture time s, child processes' MiB)
@@ -208,6 +289,8 @@ def plot(record: dict[str, Any], path: Path, label: str) -> None:
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     ax1.plot(record["keyframe_t_s"], record["keyframe_ms"], ".", ms=2, label="wall")
     ax1.plot(record["keyframe_t_s"], record["keyframe_cpu_ms"], ".", ms=2, label="CPU")
+    if record.get("live_ms"):
+        ax1.plot(record["live_t_s"], record["live_ms"], ".", ms=2, label="at real time (queued behind earlier work)")
     ax1.set_yscale("log")
     ax1.set_ylabel("keyframe update, ms")
     ax1.legend(loc="upper left")
@@ -278,6 +361,12 @@ def main(argv: list[str] | None = None) -> int:
             f"{row['p95']:.0f} p99 {row['p99']:.0f} max {row['max']:.0f} (CPU p95 {row['cpu']['p95']:.0f} p99 "
             f"{row['cpu']['p99']:.0f} max {row['cpu']['max']:.0f}), RSS peak {row['rss_peak_mib']:.0f} MiB"
         )
+        if row.get("live"):
+            live = row["live"]
+            print(
+                f"          at real time: latency ms p50 {live['p50']:.0f} p95 {live['p95']:.0f} p99 "
+                f"{live['p99']:.0f} max {live['max']:.0f}"
+            )
     bg = record["background"]
     if bg["count"]:
         print(

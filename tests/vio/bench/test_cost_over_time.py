@@ -20,3 +20,19 @@ def test_per_minute_splits_keyframes_by_capture_time():
 
 def test_rss_is_this_process():
     assert 10.0 < rss_mib() < 100_000.0
+
+
+def test_live_latency_queues_behind_background_work():
+    from vio.bench.cost_over_time import live_latency
+
+    arrive = np.array([0.0, 0.1, 0.2, 0.3])
+    update = np.array([0.01, 0.01, 0.02, 0.01])
+    after = np.array([0.0, 0.25, 0.0, 0.0])  # a 250 ms step after the second keyframe
+    latency, wait = live_latency(arrive, update, after)
+    # the third keyframe comes at 0.2 s, the thread is free at 0.1 + 0.01 + 0.25 = 0.36 s
+    np.testing.assert_allclose(wait, [0.0, 0.0, 0.16, 0.08])
+    np.testing.assert_allclose(latency, [0.01, 0.01, 0.18, 0.09])
+    # nothing behind: the latency is the update itself
+    latency, wait = live_latency(arrive, update, np.zeros(4))
+    np.testing.assert_allclose(latency, update)
+    assert not wait.any()
