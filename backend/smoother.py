@@ -66,6 +66,7 @@ class Smoother:
             raise ValueError(f"smoother.kind must be isam2 or fixed_lag, got {cfg.kind!r}")
         self.deferred = self.kind == "fixed_lag" and cfg.background
         self._holding = self.kind == "fixed_lag" and cfg.hold_start_s > 0
+        self._own_lag = self.deferred and cfg.background_marginalises and cfg.own_marginalisation
         self._t0: float | None = None  # fixed lag with a held start: the first timestamp (kept through a reset)
         self.reset()
 
@@ -75,15 +76,24 @@ class Smoother:
             # gtsam relinearises in its updates number n, 2n, ... counted from 1 (n = relinearizeSkip): with
             # n = skip + 1 those are the background steps, each after `relinearize_skip` updates (tested)
             params.relinearizeSkip = int(self.cfg.relinearize_skip) + 1
-        if self.kind == "isam2":
+        if self._own_lag:
+            params.relinearizeSkip = 2**31 - 1  # never by the counter: the background step forces it
+        if self.kind == "isam2" or self._own_lag:
             self._isam = gtsam.ISAM2(params)
         else:
             self._isam = gtsam.IncrementalFixedLagSmoother(self.cfg.lag_s, params)
         self._keys: set[int] = set()
+        self._result: gtsam.ISAM2Result | None = None  # iSAM2's account of the last update (plain iSAM2)
         self._stamps: dict[int, float] = {}  # fixed lag: key -> its latest timestamp, s (as the smoother holds it)
         self._num_updates = 0  # gtsam updates since the reset (its relinearisation counter)
         self._held: dict[int, float] = {}  # deferred: key -> its timestamp, held back until the background step
         self._own: dict[int, float] = {}  # held start: key -> its own timestamp (the smoother may hold another)
+
+    def last_result(self) -> gtsam.ISAM2Result | None:
+        """iSAM2's account of the last update (variables relinearised, re-eliminated, ...)."""
+        return (
+            self._isam.getISAM2Result() if isinstance(self._isam, gtsam.IncrementalFixedLagSmoother) else self._result
+        )
 
     def num_variables(self) -> int:
         """Variables in the solver now (fixed lag: the window only)."""
@@ -141,13 +151,20 @@ class Smoother:
         re-eliminates all of it), and the next keyframe's update then cost 48 ms instead of 8.5 ms in the median
         on the 60 s orbit's first 36 s (docs/BENCHMARKS.md, "The held start in the background")."""
         held, self._held = self._held, {}
+        if self._own_lag:
+            return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held, newest, step=True)
         graph = gtsam.NonlinearFactorGraph()
         for key in [] if newest is None else newest.keys():
             graph.add(_no_weight_prior(key, newest))
         return self._update(graph, gtsam.Values(), held)
 
     def _update(
-        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, timestamps: dict[int, float]
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        timestamps: dict[int, float],
+        newest: gtsam.Values | None = None,
+        step: bool = False,
     ) -> gtsam.Values:
         leaving = self._leaving(timestamps)
         try:
@@ -155,8 +172,10 @@ class Smoother:
             for key in leaving:
                 if not retired.exists(key):  # new in this update and already older than the lag
                     retired.insert(key, value_of(values, key))
-            if self.kind == "isam2":
-                self._isam.update(graph, values)
+            if step:
+                self._ordered_update(leaving, newest)
+            elif self.kind == "isam2" or self._own_lag:
+                self._result = self._isam.update(graph, values)
             else:
                 self._isam.update(graph, values, timestamps)
         except RuntimeError as exc:
@@ -168,6 +187,36 @@ class Smoother:
             del self._stamps[key]
             self._getter_of.pop(key, None)
         return retired
+
+    def _ordered_update(self, leaving: list[int], newest: gtsam.Values | None) -> None:
+        """The background step on plain iSAM2 (`own_marginalisation`): one update that relinearises (forced) and
+        re-eliminates in the order given: the variables that leave first (so that they are leaves), the newest
+        keyframe's last (where the next keyframe's factors attach), then the leavers marginalised. With nothing
+        leaving only what relinearisation touches is re-eliminated; with leavers, the whole window (gtsam's fixed
+        lag marks the subtrees under them instead, which needs the Bayes tree's cliques: not in the Python API)."""
+        params = gtsam.ISAM2UpdateParams()
+        params.force_relinearize = True
+        groups = gtsam.KeyGroupMap()
+        top = 2 if leaving else 1
+        for key in [] if newest is None else newest.keys():
+            groups.insert2(key, top)
+        for key in leaving:
+            groups.insert2(key, 0)
+        for key in self._keys:
+            groups.insert2(key, top - 1)  # insert2 keeps a key's first group
+        params.constrainedKeys = groups
+        if leaving:
+            extra = gtsam.KeyList()
+            for key in self._keys:
+                extra.push_back(key)
+            params.extraReelimKeys = extra
+        self._result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params)
+        if leaving:
+            leaves = gtsam.KeyList()
+            for key in leaving:
+                if key in self._keys:
+                    leaves.push_back(key)
+            self._isam.marginalizeLeaves(leaves)
 
     def _hold(self, timestamps: dict[int, float]) -> dict[int, float]:
         """The held start (`hold_start_s`): the timestamps that keep the start in the window. gtsam marginalises a

@@ -124,6 +124,10 @@ class SmootherConfig:
     # with background: the variables that left the lag are marginalised in the background step too (their
     # timestamps held back until then); false: in the keyframe's update, as without background
     background_marginalises: bool = True
+    # with background_marginalises: the fixed lag runs on gtsam's ISAM2 itself, not its IncrementalFixedLagSmoother.
+    # The keyframes' updates never relinearise; the background step relinearises (forced) and marginalises in one
+    # update whose order it gives: what leaves first, the newest keyframe's variables last (no priors needed)
+    own_marginalisation: bool = False
     # fixed lag only: nothing is marginalised in the capture's first hold_start_s seconds (the window holds every
     # variable while the scale, gravity and biases settle), then the held start leaves at hold_release_rate seconds of
     # capture per second until the window is lag_s again (0: no hold). Measured in
