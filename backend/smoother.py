@@ -88,6 +88,8 @@ class Smoother:
         self._num_updates = 0  # gtsam updates since the reset (its relinearisation counter)
         self._held: dict[int, float] = {}  # deferred: key -> its timestamp, held back until the background step
         self._own: dict[int, float] = {}  # held start: key -> its own timestamp (the smoother may hold another)
+        self._since_step = 0  # own_marginalisation: keyframe updates since the last background step
+        self._marginalise_next = False  # own_marginalisation: the last step relinearised; the next one marginalises
 
     def last_result(self) -> gtsam.ISAM2Result | None:
         """iSAM2's account of the last update (variables relinearised, re-eliminated, ...)."""
@@ -119,9 +121,11 @@ class Smoother:
         if self._holding:
             timestamps = self._hold(timestamps)
         if not self.deferred or self._num_updates == 0:
+            self._since_step += 1
             return self._update(graph, values, timestamps)
         if self.background_due():
             raise RuntimeError("the smoother's background step is due: run background() before building the update")
+        self._since_step += 1
         if not self.cfg.background_marginalises:
             return self._update(graph, values, timestamps)
         newest = max(self._stamps.values(), default=math.inf)
@@ -137,6 +141,9 @@ class Smoother:
 
     def background_due(self) -> bool:
         """Deferred: True when the background step should run now (after every `relinearize_skip` keyframes)."""
+        if self._own_lag:  # (see `background`)
+            due = self._since_step >= (1 if self._marginalise_next else self.cfg.relinearize_skip)
+            return self._num_updates > 0 and due
         n = self.cfg.relinearize_skip + 1
         return self.deferred and self._num_updates > 0 and (self._num_updates + 1) % n == 0
 
@@ -149,10 +156,20 @@ class Smoother:
         update's factors last, keeps them at the top of the tree, where the next keyframe's factors attach. An
         update without factors leaves the order to COLAMD alone (a step that relinearises most of the window
         re-eliminates all of it), and the next keyframe's update then cost 48 ms instead of 8.5 ms in the median
-        on the 60 s orbit's first 36 s (docs/BENCHMARKS.md, "The held start in the background")."""
-        held, self._held = self._held, {}
+        on the 60 s orbit's first 36 s (docs/BENCHMARKS.md, "The held start in the background").
+
+        A step that marginalises lets gtsam's fixed lag order its update (what leaves first, every other variable in
+        one group), and the newest variables sink again whatever the priors say. With `own_marginalisation` the step
+        runs on plain iSAM2 and gives the order itself (`_ordered_update`), and needs no priors."""
+        self._since_step = 0
         if self._own_lag:
-            return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held, newest, step=True)
+            if self._marginalise_next:
+                self._marginalise_next = False
+                held, self._held = self._held, {}
+                return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held, newest, step="marginalise")
+            self._marginalise_next = self._would_leave(self._held)
+            return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, newest, step="relinearise")
+        held, self._held = self._held, {}
         graph = gtsam.NonlinearFactorGraph()
         for key in [] if newest is None else newest.keys():
             graph.add(_no_weight_prior(key, newest))
@@ -164,7 +181,7 @@ class Smoother:
         values: gtsam.Values,
         timestamps: dict[int, float],
         newest: gtsam.Values | None = None,
-        step: bool = False,
+        step: str = "",
     ) -> gtsam.Values:
         leaving = self._leaving(timestamps)
         try:
@@ -173,7 +190,7 @@ class Smoother:
                 if not retired.exists(key):  # new in this update and already older than the lag
                     retired.insert(key, value_of(values, key))
             if step:
-                self._ordered_update(leaving, newest)
+                self._ordered_update(leaving, newest, relinearise=step == "relinearise")
             elif self.kind == "isam2" or self._own_lag:
                 self._result = self._isam.update(graph, values)
             else:
@@ -188,14 +205,22 @@ class Smoother:
             self._getter_of.pop(key, None)
         return retired
 
-    def _ordered_update(self, leaving: list[int], newest: gtsam.Values | None) -> None:
+    def _would_leave(self, held: dict[int, float]) -> bool:
+        """True when a step given these held-back timestamps would marginalise (the rule of `_leaving`)."""
+        stamps = {**self._stamps, **held}
+        if not stamps:
+            return False
+        cutoff = max(stamps.values()) - self.cfg.lag_s
+        return any(t < cutoff for t in stamps.values())
+
+    def _ordered_update(self, leaving: list[int], newest: gtsam.Values | None, relinearise: bool) -> None:
         """The background step on plain iSAM2 (`own_marginalisation`): one update that relinearises (forced) and
         re-eliminates in the order given: the variables that leave first (so that they are leaves), the newest
         keyframe's last (where the next keyframe's factors attach), then the leavers marginalised. With nothing
         leaving only what relinearisation touches is re-eliminated; with leavers, the whole window (gtsam's fixed
         lag marks the subtrees under them instead, which needs the Bayes tree's cliques: not in the Python API)."""
         params = gtsam.ISAM2UpdateParams()
-        params.force_relinearize = True
+        params.force_relinearize = relinearise
         groups = gtsam.KeyGroupMap()
         top = 2 if leaving else 1
         for key in [] if newest is None else newest.keys():

@@ -36,3 +36,13 @@ def test_live_latency_queues_behind_background_work():
     latency, wait = live_latency(arrive, update, np.zeros(4))
     np.testing.assert_allclose(latency, update)
     assert not wait.any()
+
+
+def test_the_start_queue_ends_at_the_first_keyframe_that_did_not_wait():
+    from vio.bench.cost_over_time import start_queue
+
+    t_ns = np.arange(8, dtype=np.int64) * 100
+    wait = np.array([0.0, 0.0, 0.0, 0.2, 0.1, 0.0, 0.3, 0.0])  # the start solved at keyframe 2; 6 waits later
+    assert start_queue(t_ns, wait, 200) == {"index": 2, "drained_index": 5}
+    assert start_queue(t_ns, wait, None) == {"index": 0, "drained_index": 1}
+    assert start_queue(t_ns, np.zeros(8), 700) == {"index": 7, "drained_index": 8}
