@@ -88,14 +88,18 @@ class Smoother:
         self._num_updates = 0  # gtsam updates since the reset (its relinearisation counter)
         self._held: dict[int, float] = {}  # deferred: key -> its timestamp, held back until the background step
         self._own: dict[int, float] = {}  # held start: key -> its own timestamp (the smoother may hold another)
-        self._since_step = 0  # own_marginalisation: keyframe updates since the last background step
-        self._marginalise_next = False  # own_marginalisation: the last step relinearised; the next one marginalises
 
     def last_result(self) -> gtsam.ISAM2Result | None:
         """iSAM2's account of the last update (variables relinearised, re-eliminated, ...)."""
         return (
             self._isam.getISAM2Result() if isinstance(self._isam, gtsam.IncrementalFixedLagSmoother) else self._result
         )
+
+    def factors(self) -> gtsam.NonlinearFactorGraph:
+        """iSAM2's factor list (a removed factor leaves a null slot until a new one takes it)."""
+        if isinstance(self._isam, gtsam.IncrementalFixedLagSmoother):
+            return self._isam.getFactors()
+        return self._isam.getFactorsUnsafe()
 
     def num_variables(self) -> int:
         """Variables in the solver now (fixed lag: the window only)."""
@@ -121,11 +125,9 @@ class Smoother:
         if self._holding:
             timestamps = self._hold(timestamps)
         if not self.deferred or self._num_updates == 0:
-            self._since_step += 1
             return self._update(graph, values, timestamps)
         if self.background_due():
             raise RuntimeError("the smoother's background step is due: run background() before building the update")
-        self._since_step += 1
         if not self.cfg.background_marginalises:
             return self._update(graph, values, timestamps)
         newest = max(self._stamps.values(), default=math.inf)
@@ -141,9 +143,6 @@ class Smoother:
 
     def background_due(self) -> bool:
         """Deferred: True when the background step should run now (after every `relinearize_skip` keyframes)."""
-        if self._own_lag:  # (see `background`)
-            due = self._since_step >= (1 if self._marginalise_next else self.cfg.relinearize_skip)
-            return self._num_updates > 0 and due
         n = self.cfg.relinearize_skip + 1
         return self.deferred and self._num_updates > 0 and (self._num_updates + 1) % n == 0
 
@@ -159,17 +158,11 @@ class Smoother:
         on the 60 s orbit's first 36 s (docs/BENCHMARKS.md, "The held start in the background").
 
         A step that marginalises lets gtsam's fixed lag order its update (what leaves first, every other variable in
-        one group), and the newest variables sink again whatever the priors say. With `own_marginalisation` the step
-        runs on plain iSAM2 and gives the order itself (`_ordered_update`), and needs no priors."""
-        self._since_step = 0
-        if self._own_lag:
-            if self._marginalise_next:
-                self._marginalise_next = False
-                held, self._held = self._held, {}
-                return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held, newest, step="marginalise")
-            self._marginalise_next = self._would_leave(self._held)
-            return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, newest, step="relinearise")
+        one group), and the newest variables sink whatever the priors say. With `own_marginalisation` the step runs
+        on plain iSAM2 and gives the order itself (`_ordered_update`), and needs no priors."""
         held, self._held = self._held, {}
+        if self._own_lag:
+            return self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), held, newest, step=True)
         graph = gtsam.NonlinearFactorGraph()
         for key in [] if newest is None else newest.keys():
             graph.add(_no_weight_prior(key, newest))
@@ -181,7 +174,7 @@ class Smoother:
         values: gtsam.Values,
         timestamps: dict[int, float],
         newest: gtsam.Values | None = None,
-        step: str = "",
+        step: bool = False,
     ) -> gtsam.Values:
         leaving = self._leaving(timestamps)
         try:
@@ -189,13 +182,13 @@ class Smoother:
             for key in leaving:
                 if not retired.exists(key):  # new in this update and already older than the lag
                     retired.insert(key, value_of(values, key))
-            if step:
-                self._ordered_update(leaving, newest, relinearise=step == "relinearise")
+            if step or (self._own_lag and leaving):  # the latter: the first update, before any clamping
+                self._ordered_update(graph, values, leaving, newest, relinearise=step)
             elif self.kind == "isam2" or self._own_lag:
                 self._result = self._isam.update(graph, values)
             else:
                 self._isam.update(graph, values, timestamps)
-        except RuntimeError as exc:
+        except (RuntimeError, ValueError) as exc:  # gtsam raises both (ValueError: std::invalid_argument)
             raise SolverFailure(first_line(exc)) from exc
         self._num_updates += 1
         self._keys.update(values.keys())
@@ -205,41 +198,43 @@ class Smoother:
             self._getter_of.pop(key, None)
         return retired
 
-    def _would_leave(self, held: dict[int, float]) -> bool:
-        """True when a step given these held-back timestamps would marginalise (the rule of `_leaving`)."""
-        stamps = {**self._stamps, **held}
-        if not stamps:
-            return False
-        cutoff = max(stamps.values()) - self.cfg.lag_s
-        return any(t < cutoff for t in stamps.values())
-
-    def _ordered_update(self, leaving: list[int], newest: gtsam.Values | None, relinearise: bool) -> None:
+    def _ordered_update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        leaving: list[int],
+        newest: gtsam.Values | None,
+        relinearise: bool,
+    ) -> None:
         """The background step on plain iSAM2 (`own_marginalisation`): one update that relinearises (forced) and
         re-eliminates in the order given: the variables that leave first (so that they are leaves), the newest
         keyframe's last (where the next keyframe's factors attach), then the leavers marginalised. With nothing
         leaving only what relinearisation touches is re-eliminated; with leavers, the whole window (gtsam's fixed
-        lag marks the subtrees under them instead, which needs the Bayes tree's cliques: not in the Python API)."""
+        lag marks the subtrees under them instead, which needs the Bayes tree's cliques: not in the Python API).
+        Also the first update when its start window is already longer than the lag (`relinearise` False, nothing to
+        relinearise yet; its new variables among the leavers)."""
         params = gtsam.ISAM2UpdateParams()
         params.force_relinearize = relinearise
+        window = self._keys | set(values.keys())
         groups = gtsam.KeyGroupMap()
         top = 2 if leaving else 1
+        for key in leaving:  # first: a leaver must be eliminated first, whatever else it is
+            groups.insert2(key, 0)
         for key in [] if newest is None else newest.keys():
             groups.insert2(key, top)
-        for key in leaving:
-            groups.insert2(key, 0)
-        for key in self._keys:
+        for key in window:
             groups.insert2(key, top - 1)  # insert2 keeps a key's first group
         params.constrainedKeys = groups
         if leaving:
             extra = gtsam.KeyList()
-            for key in self._keys:
+            for key in self._keys:  # those already in iSAM2
                 extra.push_back(key)
             params.extraReelimKeys = extra
-        self._result = self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params)
+        self._result = self._isam.update(graph, values, params)
         if leaving:
             leaves = gtsam.KeyList()
             for key in leaving:
-                if key in self._keys:
+                if key in window:
                     leaves.push_back(key)
             self._isam.marginalizeLeaves(leaves)
 

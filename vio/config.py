@@ -130,8 +130,9 @@ class SmootherConfig:
     own_marginalisation: bool = False
     # fixed lag only: nothing is marginalised in the capture's first hold_start_s seconds (the window holds every
     # variable while the scale, gravity and biases settle), then the held start leaves at hold_release_rate seconds of
-    # capture per second until the window is lag_s again (0: no hold). Measured in
-    # docs/BENCHMARKS.md ("The fixed lag's start")
+    # capture per second until the window is lag_s again (0: no hold; a large rate, as the preset's 1000, releases it
+    # at once, one block after hold_start_s). Measured in docs/BENCHMARKS.md ("The fixed lag's start", "The
+    # background step on plain iSAM2")
     hold_start_s: float = 0.0
     hold_release_rate: float = 2.0
 

@@ -133,10 +133,11 @@ def test_the_fixed_lag_reuses_the_slots_of_the_factors_it_removed(long_data, mon
     growing = _run(long_data, cfg, False)
     sizes = []
     for est in (reusing, growing):
-        factors = est.state.smoother._isam.getFactors()
+        factors = est.state.smoother.factors()
         sizes.append((factors.size(), sum(factors.at(i) is not None for i in range(factors.size()))))
     (slots, live), (slots_before, live_before) = sizes
-    assert live == live_before and slots == live and slots_before > 2 * live, sizes
+    # the slots of the last step's leavers may still be empty at the end (no update after it filled them)
+    assert live == live_before and live <= slots < 1.1 * live and slots_before > 2 * live, sizes
     for a, b in zip(reusing.states(), growing.states(), strict=True):
         assert np.allclose(a.world_T_body, b.world_T_body, atol=1e-7)
 

@@ -314,7 +314,7 @@ def plot(record: dict[str, Any], path: Path, label: str) -> None:
     if record.get("live_ms"):
         ax1.plot(record["live_t_s"], record["live_ms"], ".", ms=2, label="at real time (queued behind earlier work)")
     ax1.set_yscale("log")
-    ax1.set_ylabel("keyframe update, ms")
+    ax1.set_ylabel("per keyframe, ms")
     ax1.legend(loc="upper left")
     ax1.set_title(label)
     mem = np.asarray(record["memory"]).reshape(-1, 2)
