@@ -168,7 +168,7 @@ def start_queue(kf_t_ns: np.ndarray, wait_s: np.ndarray, start_t_ns: int | None)
     """The start in the live timeline: the index of the keyframe whose update solved the start window (its time
     `start_t_ns`; the first keyframe when None) and the index of the first keyframe after it that did not queue."""
     index = int(np.searchsorted(kf_t_ns, start_t_ns)) if start_t_ns is not None else 0
-    index = min(index, len(kf_t_ns) - 1)
+    index = max(0, min(index, len(kf_t_ns) - 1))
     drained = index + 1
     while drained < len(wait_s) and wait_s[drained] > 0:
         drained += 1
@@ -260,7 +260,9 @@ def measure(capture: str, out: Path, presets: list[str], overrides: list[str]) -
         "live_t_s": live_t.round(3).tolist(),
         "live_ms": (1e3 * live_s).round(2).tolist(),
         "live_wait_ms": (1e3 * wait_s).round(2).tolist(),
-        "live_start": {
+        "live_start": None
+        if not len(kf)
+        else {
             "t_s": float(live_t[start["index"]]),
             "latency_ms": float(1e3 * live_s[start["index"]]),
             "queued_keyframes": start["drained_index"] - start["index"] - 1,
@@ -390,11 +392,12 @@ def main(argv: list[str] | None = None) -> int:
                 f"{live['p99']:.0f} max {live['max']:.0f}"
             )
     st = record["live_start"]
-    print(
-        f"the start at real time: the start window's solve done {st['latency_ms']:.0f} ms after its keyframe "
-        f"({st['t_s']:.2f} s), {st['queued_keyframes']} keyframes queued behind it (at most {st['queued_max_ms']:.0f} "
-        f"ms), none from {st['drained_t_s']:.2f} s on"
-    )
+    if st:
+        print(
+            f"the start at real time: the start window's solve done {st['latency_ms']:.0f} ms after its keyframe "
+            f"({st['t_s']:.2f} s), {st['queued_keyframes']} keyframes queued behind it (at most "
+            f"{st['queued_max_ms']:.0f} ms), none from {st['drained_t_s']:.2f} s on"
+        )
     bg = record["background"]
     if bg["count"]:
         print(
