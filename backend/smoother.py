@@ -72,12 +72,12 @@ class Smoother:
 
     def reset(self) -> None:
         params = isam2_params(self.cfg)
-        if self.deferred:
+        if self._own_lag:
+            params.relinearizeSkip = 2**31 - 1  # never by the counter: the background step forces it
+        elif self.deferred:
             # gtsam relinearises in its updates number n, 2n, ... counted from 1 (n = relinearizeSkip): with
             # n = skip + 1 those are the background steps, each after `relinearize_skip` updates (tested)
             params.relinearizeSkip = int(self.cfg.relinearize_skip) + 1
-        if self._own_lag:
-            params.relinearizeSkip = 2**31 - 1  # never by the counter: the background step forces it
         if self.kind == "isam2" or self._own_lag:
             self._isam = gtsam.ISAM2(params)
         else:
