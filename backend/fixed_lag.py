@@ -64,6 +64,7 @@ def retire(state: GraphState, marginalised: gtsam.Values) -> dict[int, np.ndarra
         if chr(sym.chr()) == "l":
             kept[int(sym.index())] = np.asarray(marginalised.atPoint3(key), float)
     state.retired.update(kept.keys())
+    state.unlist_retired(kept.keys())
     return kept
 
 

@@ -6,7 +6,8 @@ small helpers that edit them. The estimator owns one and passes it to its parts 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from array import array
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import gtsam
@@ -21,6 +22,27 @@ log = logging.getLogger(__name__)
 
 Warn = Callable[[str], None]
 __all__ = ["GraphState", "Warn", "value_of"]
+
+
+class LandmarkArchive:
+    """Landmarks dropped from the live bookkeeping, in 16 bytes each: id and projection count (their last value
+    stays in `GraphState.values`, which the scale's uncertainty and `--refine` read). A live landmark costs about
+    2 KB more (its counts, track and atlas rows); the fixed lag's duplicates of older landmarks come here
+    (`GraphState.archive`), so the map of a long capture of one scene grows by little more than its values."""
+
+    def __init__(self) -> None:
+        self._ids, self._nobs = array("q"), array("q")
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def add(self, j: int, num_obs: int) -> None:
+        self._ids.append(j)
+        self._nobs.append(num_obs)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids (M,) int64, projection counts (M,) int64)."""
+        return np.frombuffer(self._ids, np.int64).copy(), np.frombuffer(self._nobs, np.int64).copy()
 
 
 class GraphState:
@@ -51,6 +73,7 @@ class GraphState:
         self._first_seen: dict[int, int] = {}
         self.projections: dict[int, int] = {}  # keyframe index -> projection factors on its pose (run health)
         self.retired: set[int] = set()  # landmarks that left the fixed lag; `values` keeps their last estimate
+        self.archived = LandmarkArchive()  # landmarks dropped from the live map (`archive`)
         self.bias = gtsam.imuBias.ConstantBias()  # latest bias estimate (preintegration uses it)
         self.last_k: int | None = None
         self.dirty = False  # True when the smoother holds estimates not yet pulled into `values`
@@ -95,10 +118,7 @@ class GraphState:
         self.num_obs[j] = self.num_obs.get(j, 0) + 1
         before = self.last_obs.get(j)
         if before is not None and before != k:
-            others = self._last_seen_at[before]
-            del others[j]
-            if not others:
-                del self._last_seen_at[before]
+            self._unlist(j, before)
         self.last_obs[j] = k
         self._last_seen_at.setdefault(k, {})[j] = None
         self._first_seen.setdefault(j, len(self._first_seen))
@@ -110,6 +130,36 @@ class GraphState:
         where it sets iSAM2's ordering: another order read p95 59-62 against 41-47 ms in the 60 s orbit's first
         minute."""
         return sorted(self._last_seen_at.get(k, ()), key=self._first_seen.__getitem__)
+
+    def unlist_retired(self, js: Iterable[int]) -> None:
+        """Landmarks that left the fixed lag leave the keyframe -> landmarks index (`landmarks_last_seen_at` is
+        asked about the latest keyframe only), so the index holds the window's keyframes alone. Kept, each old
+        keyframe's dict held the table it had when the keyframe's ~150 landmarks were first filed there: 1.8 MiB a
+        minute of the 60 s orbit (tracemalloc)."""
+        for j in js:
+            k = self.last_obs.get(j)
+            if k is not None:
+                self._unlist(j, k)
+
+    def archive(self, j: int) -> None:
+        """Old landmark j leaves the live bookkeeping for the archive: it is no longer an old landmark or a count
+        here; its value stays in `values` (the factors of an open scale chunk, or all of them for `--refine`, may name
+        it). Only for a landmark no new factor will name (a retired one whose track has ended and that
+        re-identification no longer offers)."""
+        self.archived.add(j, self.num_obs.pop(j, 0))
+        self.retired.discard(j)
+        k = self.last_obs.pop(j, None)
+        if k is not None:
+            self._unlist(j, k)
+        self._first_seen.pop(j, None)
+
+    def _unlist(self, j: int, k: int) -> None:
+        others = self._last_seen_at.get(k)
+        if others is None:
+            return
+        others.pop(j, None)
+        if not others:
+            del self._last_seen_at[k]
 
     # ------------------------------------------------------------------ windows
     def window(self, k: int) -> range:

@@ -88,6 +88,13 @@ class Reidentification:
         if any(i in self.atlas.rows and np.linalg.norm(self.atlas.position(i) - p_world) <= r for i in near):
             self.atlas.forget(j)
             self.num_merged += 1
+            if self.cfg.archive_merged and j not in self._loop_landmarks:  # no factor names it again: only its
+                # position stays, for the output
+                self.book.tracks.pop(j, None)
+                src = self._alias_rev.pop(j, None)
+                if src is not None:
+                    self._alias.pop(src, None)
+                self.state.archive(j)
             return
         self._grid.setdefault(cell, []).append(j)
         self._cell_of[j] = cell

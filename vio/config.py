@@ -216,6 +216,9 @@ class ReidentificationConfig:
     # fixed lag: a landmark that leaves the window within this of an older retired one leaves the atlas (it stays in
     # the map): the atlas of a long capture of one scene stops growing (0: off; backend/reidentification.py)
     merge_radius_m: float = 0.0
+    # with merge_radius_m: such a duplicate also leaves the live bookkeeping (its counts and track; its value stays, and
+    # it stays in the run's landmarks.ply: GraphState.archive), so the map costs little more than its values
+    archive_merged: bool = True
 
 
 @dataclass(frozen=True)

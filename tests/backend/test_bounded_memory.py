@@ -213,3 +213,31 @@ def test_fixed_lag_without_refine_lets_old_factors_go_and_keeps_them_for_refine(
     assert s_drop is not None and all(r is not None for r in chunks.results) and not chunks._pending
     assert len(dropping.stats().scale_pairs) == len(cut.pairs)
     assert 0.8 < s_drop / cut.sigma_rel < 1.25, (s_drop, cut.sigma_rel)
+
+
+def test_archived_duplicates_change_no_estimate_and_leave_the_live_map(long_data):
+    """With `merge_radius_m`, a landmark that leaves the fixed lag within that radius of an older one leaves the
+    atlas; with `archive_merged` (the default) it also leaves the live bookkeeping: its counts and track go, its
+    value stays. Points that come back into view get new track ids here (as from the tracker), so
+    every return makes such a duplicate. No factor names an archived landmark again, so the states are the same,
+    and so is the landmark output."""
+    data = _unique_ids(long_data)
+    runs = {}
+    for archive in (False, True):
+        cfg = _fixed_lag(
+            "smoother.lag_s=2.0", "reidentification.merge_radius_m=0.005", f"reidentification.archive_merged={archive}"
+        )
+        runs[archive] = _run(data, cfg, True)
+    kept, archived = runs[False], runs[True]
+    merged = archived.reidentification.num_merged
+    assert merged == kept.reidentification.num_merged >= 5  # measured: 8
+    assert len(archived.state.archived) == merged and len(kept.state.archived) == 0
+    assert archived.state.values.size() == kept.state.values.size()  # the values stay (open scale chunks)
+    assert len(archived.state.num_obs) == len(kept.state.num_obs) - merged
+    assert len(archived.book.tracks) <= len(kept.book.tracks) - merged
+    assert not archived.state.retired & set(archived.state.archived.arrays()[0].tolist())
+    for a, b in zip(kept.states(), archived.states(), strict=True):
+        assert np.allclose(a.world_T_body, b.world_T_body, rtol=0, atol=1e-9)
+    la, lb = kept.landmarks(), archived.landmarks()
+    assert np.array_equal(la.ids, lb.ids) and np.array_equal(la.num_obs, lb.num_obs)
+    assert np.allclose(la.points_world, lb.points_world, rtol=0, atol=1e-9)

@@ -367,3 +367,14 @@ def test_the_landmarks_last_seen_at_a_keyframe_are_what_a_scan_of_last_obs_gives
     for k in range(12):
         assert st.landmarks_last_seen_at(k) == [j for j, kk in st.last_obs.items() if kk == k]
     assert sum(len(st.landmarks_last_seen_at(k)) for k in range(12)) == len(st.last_obs) == 60
+    # landmarks that left the lag leave the index (it holds the window's keyframes alone); seen again, they are
+    # filed at their new keyframe
+    gone = {j for j, kk in st.last_obs.items() if kk < 6}
+    st.unlist_retired(gone)
+    for k in range(12):
+        assert st.landmarks_last_seen_at(k) == [j for j, kk in st.last_obs.items() if kk == k and j not in gone]
+    assert sorted(st._last_seen_at) == sorted({kk for j, kk in st.last_obs.items() if j not in gone})
+    back = min(gone)
+    st.t_ns[12] = 1_200_000_000
+    st.add_projection(graph, 12, back, np.array([320.0, 240.0]))
+    assert st.landmarks_last_seen_at(12) == [back]

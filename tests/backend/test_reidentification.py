@@ -202,8 +202,8 @@ def test_forgotten_landmarks_are_no_candidates_and_their_rows_and_slots_are_take
 
 def test_a_retiring_duplicate_of_an_older_landmark_leaves_the_atlas():
     book = LandmarkBook(K, np.eye(4), LandmarkConfig())
-    cfg = ReidentificationConfig(merge_radius_m=0.005)
-    reid = Reidentification(cfg, True, book, None, np.eye(4))  # on_admit / on_retired use no graph state
+    cfg = ReidentificationConfig(merge_radius_m=0.005, archive_merged=False)
+    reid = Reidentification(cfg, True, book, None, np.eye(4))  # the atlas alone: no graph state to archive from
     p = np.array([0.3, 1.2, 0.1])
     for j, q in [(1, p), (2, p + [0.004, 0.0, 0.0]), (3, p + [0.0, 0.006, 0.0]), (4, p + [0.0, 0.0, -0.003])]:
         reid.on_admit(j, q)
