@@ -311,6 +311,8 @@ class VioEstimator:
             num_reidentified=self.reidentification.num_reidentified,
             num_loop_flushes=self.reidentification.num_loop_flushes,
             num_landmarks_revived=self.old.num_revived,
+            num_landmarks_merged=self.reidentification.num_merged,
+            num_landmarks_archived=len(self.state.archived),
             num_blind_adjustments=self.blind.num_runs,
             num_blind_admitted=self.blind.num_admitted,
             num_position_factors=self.anchor.num_factors if self.anchor is not None else 0,

@@ -150,6 +150,8 @@ def run_summary(
         "num_reidentified": stats.num_reidentified,
         "num_loop_flushes": stats.num_loop_flushes,
         "num_landmarks_revived": stats.num_landmarks_revived,
+        "num_landmarks_merged": stats.num_landmarks_merged,
+        "num_landmarks_archived": stats.num_landmarks_archived,
         "num_blind_adjustments": stats.num_blind_adjustments,
         "num_blind_admitted": stats.num_blind_admitted,
         "smoother_variables_max": max(stats.smoother_variables, default=0),

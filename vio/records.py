@@ -253,6 +253,8 @@ class EstimatorStats:
     reidentifications: tuple[ReidentificationEvent, ...]
     warnings: tuple[str, ...]
     num_landmarks_revived: int = 0  # old landmarks back in a fixed-lag window after being marginalised
+    num_landmarks_merged: int = 0  # retired duplicates of older landmarks left out of the atlas (merge_radius_m)
+    num_landmarks_archived: int = 0  # ... and out of the live bookkeeping too (archive_merged)
     num_blind_adjustments: int = 0  # window adjustments at keyframes without a visual constraint
     num_blind_admitted: int = 0  # landmarks admitted over those adjusted poses (backend/blind_admission.py)
     smoother_variables: tuple[int, ...] = ()  # variables in the smoother after each steady-state keyframe

@@ -232,6 +232,7 @@ def test_archived_duplicates_change_no_estimate_and_leave_the_live_map(long_data
     merged = archived.reidentification.num_merged
     assert merged == kept.reidentification.num_merged >= 5  # measured: 8
     assert len(archived.state.archived) == merged and len(kept.state.archived) == 0
+    assert archived.stats().num_landmarks_archived == merged == archived.stats().num_landmarks_merged
     assert archived.state.values.size() == kept.state.values.size()  # the values stay (open scale chunks)
     assert len(archived.state.num_obs) == len(kept.state.num_obs) - merged
     assert len(archived.book.tracks) <= len(kept.book.tracks) - merged
