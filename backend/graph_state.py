@@ -73,7 +73,7 @@ class GraphState:
         self._first_seen: dict[int, int] = {}
         self.projections: dict[int, int] = {}  # keyframe index -> projection factors on its pose (run health)
         self.retired: set[int] = set()  # landmarks that left the fixed lag; `values` keeps their last estimate
-        self.archived = LandmarkArchive()  # landmarks dropped from the live map (`archive`)
+        self.archived = LandmarkArchive()  # duplicates out of the live bookkeeping (`archive`)
         self.bias = gtsam.imuBias.ConstantBias()  # latest bias estimate (preintegration uses it)
         self.last_k: int | None = None
         self.dirty = False  # True when the smoother holds estimates not yet pulled into `values`

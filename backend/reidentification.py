@@ -89,7 +89,7 @@ class Reidentification:
             self.atlas.forget(j)
             self.num_merged += 1
             if self.cfg.archive_merged and j not in self._loop_landmarks:  # no factor names it again: only its
-                # position stays, for the output
+                # value stays (the scale's chunks, --refine, the output)
                 self.book.tracks.pop(j, None)
                 src = self._alias_rev.pop(j, None)
                 if src is not None:
