@@ -104,6 +104,22 @@ class LandmarkAtlas:
         self._slots[row] = []
         self._free_rows.append(row)
 
+    def absorb(self, j: int, into: int) -> None:
+        """Landmark j is a duplicate of `into`: its snapshots from viewpoints `into` has none near (`remember`'s
+        spacing) become `into`'s, then j is forgotten. The old landmark keeps its position and gains the newer
+        views' appearance."""
+        row, dst = self.rows.get(j), self.rows.get(into)
+        if row is not None and dst is not None:
+            cos_new = np.cos(np.radians(SNAPSHOT_SPACING_DEG))
+            for src in list(self._slots[row]):
+                kept = self._slots[dst]
+                if kept and float(np.max(self._snap_dir[kept] @ self._snap_dir[src])) > cos_new:
+                    continue
+                slot = self._new_slot(dst)
+                self._snap_row[slot], self._snap_desc[slot] = dst, self._snap_desc[src]
+                self._snap_dir[slot], self._snap_depth[slot] = self._snap_dir[src], self._snap_depth[src]
+        self.forget(j)
+
     def _new_slot(self, row: int) -> int:
         slots = self._slots[row]
         if len(slots) >= MAX_SNAPSHOTS:  # keep the first view and the newest ones

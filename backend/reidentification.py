@@ -85,8 +85,14 @@ class Reidentification:
             self._cell_of[j] = cell
             return
         near = (i for d in _NEIGHBOURS for i in self._grid.get((cell[0] + d[0], cell[1] + d[1], cell[2] + d[2]), ()))
-        if any(i in self.atlas.rows and np.linalg.norm(self.atlas.position(i) - p_world) <= r for i in near):
-            self.atlas.forget(j)
+        twin = next(
+            (i for i in near if i in self.atlas.rows and np.linalg.norm(self.atlas.position(i) - p_world) <= r), None
+        )
+        if twin is not None:
+            if self.cfg.merge_snapshots:
+                self.atlas.absorb(j, twin)
+            else:
+                self.atlas.forget(j)
             self.num_merged += 1
             if self.cfg.archive_merged and j not in self._loop_landmarks:  # no factor names it again: only its
                 # value stays (the scale's chunks, --refine, the output)

@@ -219,6 +219,8 @@ class ReidentificationConfig:
     # with merge_radius_m: such a duplicate also leaves the live bookkeeping (its counts and track; its value stays, and
     # it stays in the run's landmarks.ply: GraphState.archive), so the map costs little more than its values
     archive_merged: bool = True
+    # with merge_radius_m: the duplicate's snapshots from new viewpoints go to the older landmark it duplicates
+    merge_snapshots: bool = False
 
 
 @dataclass(frozen=True)

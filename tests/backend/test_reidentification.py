@@ -219,3 +219,37 @@ def test_a_retiring_duplicate_of_an_older_landmark_leaves_the_atlas():
     off.on_retired(1, p)
     off.on_retired(2, p)
     assert set(off.atlas.rows) == {1, 2}  # merge_radius_m 0: off
+
+
+def test_a_merged_duplicate_hands_its_new_viewpoints_to_the_older_landmark():
+    """`merge_snapshots`: the duplicate's snapshots from viewpoints the older landmark has none near become the older
+    one's (at most MAX_SNAPSHOTS, the first view kept); the duplicate leaves the atlas."""
+    from backend.atlas import MAX_SNAPSHOTS
+
+    book = LandmarkBook(K, np.eye(4), LandmarkConfig())
+    cfg = ReidentificationConfig(merge_radius_m=0.005, archive_merged=False, merge_snapshots=True)
+    reid = Reidentification(cfg, True, book, None, np.eye(4))
+    atlas = reid.atlas
+    p = np.array([0.0, 0.0, 0.0])
+    desc = np.arange(3 * 32, dtype=np.uint8).reshape(3, 32)
+
+    def around(deg):  # a camera 1 m from the point, deg round it
+        return _look(deg, c=(-np.sin(np.radians(deg)), -np.cos(np.radians(deg)), 0.0))
+
+    reid.on_admit(1, p)
+    atlas.remember(around(0.0), np.array([1]), desc[:1], np.ones(1, bool))
+    reid.on_admit(2, p + [0.003, 0.0, 0.0])
+    atlas.remember(around(3.0), np.array([2]), desc[1:2], np.ones(1, bool))  # near 1's viewpoint: not handed over
+    atlas.remember(around(40.0), np.array([2]), desc[2:3], np.ones(1, bool))  # a new viewpoint for 1
+    reid.on_retired(1, p)
+    reid.on_retired(2, p + [0.003, 0.0, 0.0])
+    assert set(atlas.rows) == {1} and reid.num_merged == 1
+    slots = atlas._slots[atlas.rows[1]]
+    assert len(slots) == 2 and np.array_equal(atlas._snap_desc[slots[1]], desc[2])
+    for i in range(3, 12):  # more duplicates, each from a new viewpoint: the first view and the newest stay
+        reid.on_admit(i, p)
+        atlas.remember(around(40.0 + 15.0 * i), np.array([i]), desc[2:3], np.ones(1, bool))
+        reid.on_retired(i, p)
+    slots = atlas._slots[atlas.rows[1]]
+    assert len(slots) == MAX_SNAPSHOTS and np.array_equal(atlas._snap_desc[slots[0]], desc[0])
+    assert set(atlas.rows) == {1}
