@@ -282,23 +282,10 @@ class VioEstimator:
         st = self.state
         if sync:
             st.sync()
-        ids = np.asarray([j for j in sorted(st.num_obs) if st.values.exists(L(j))], np.int64)
-        pts = np.array([st.values.atPoint3(L(j)) for j in ids.tolist()]).reshape(-1, 3)
+        ids, pts, nobs = st.landmark_arrays()
         T = self._output_T()
         if T is not None:
             pts = pts @ T[:3, :3].T + T[:3, 3]
-        nobs = np.array([st.num_obs[j] for j in ids.tolist()], np.int64)
-        if len(st.archived):  # the fixed lag's duplicates, out of the live bookkeeping (GraphState.archive)
-            a_ids, a_nobs = st.archived.arrays()
-            live = ~np.isin(a_ids, ids)  # an id admitted again after its archiving is the live one
-            a_ids, a_nobs = a_ids[live], a_nobs[live]
-            a_pts = np.array([st.values.atPoint3(L(j)) for j in a_ids.tolist()]).reshape(-1, 3)
-            if T is not None:
-                a_pts = a_pts @ T[:3, :3].T + T[:3, 3]
-            order = np.argsort(np.concatenate([ids, a_ids]), kind="stable")
-            ids = np.concatenate([ids, a_ids])[order]
-            pts = np.concatenate([pts, a_pts])[order]
-            nobs = np.concatenate([nobs, a_nobs])[order]
         return LandmarkMap(ids, track_of(ids), pts, nobs)
 
     def stats(self) -> EstimatorStats:

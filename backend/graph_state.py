@@ -14,7 +14,7 @@ import gtsam
 import numpy as np
 
 from backend import factors as fb
-from backend.keys import B, V, X
+from backend.keys import B, L, V, X
 from backend.smoother import Smoother, SolverFailure, value_of
 from vio.records import StateEstimate
 
@@ -130,6 +130,22 @@ class GraphState:
         where it sets iSAM2's ordering: another order read p95 59-62 against 41-47 ms in the 60 s orbit's first
         minute."""
         return sorted(self._last_seen_at.get(k, ()), key=self._first_seen.__getitem__)
+
+    def landmark_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every landmark with a value, the archived duplicates included: ids (M,) int64 in ascending order, world
+        positions (M, 3) m, projection counts (M,) int64."""
+        ids = [j for j in self.num_obs if self.values.exists(L(j))]
+        nobs = [self.num_obs[j] for j in ids]
+        a_ids, a_nobs = self.archived.arrays()
+        live = set(ids)
+        for j, n in zip(a_ids.tolist(), a_nobs.tolist(), strict=True):
+            if j not in live:  # an id admitted again after its archiving is the live one
+                ids.append(j)
+                nobs.append(n)
+        order = np.argsort(np.asarray(ids, np.int64), kind="stable")
+        ids_arr = np.asarray(ids, np.int64)[order]
+        pts = np.array([self.values.atPoint3(L(j)) for j in ids_arr.tolist()]).reshape(-1, 3)
+        return ids_arr, pts, np.asarray(nobs, np.int64)[order]
 
     def unlist_retired(self, js: Iterable[int]) -> None:
         """Landmarks that left the fixed lag leave the keyframe -> landmarks index (`landmarks_last_seen_at` is
