@@ -242,3 +242,30 @@ def test_archived_duplicates_change_no_estimate_and_leave_the_live_map(long_data
     la, lb = kept.landmarks(), archived.landmarks()
     assert np.array_equal(la.ids, lb.ids) and np.array_equal(la.num_obs, lb.num_obs)
     assert np.allclose(la.points_world, lb.points_world, rtol=0, atol=1e-9)
+
+
+def test_an_archived_id_admitted_again_is_listed_once_with_its_live_count():
+    """`GraphState.landmark_arrays` lists every landmark with a value, the archived ones included. The tracker never
+    reuses an id, but a capture's own ids may (a reader that numbers tracks per segment): an id archived and then
+    admitted again is one row, the live landmark's count, at the value the graph holds now."""
+    import backend.factors as fb
+    from backend.graph_state import GraphState
+    from backend.smoother import Smoother
+    from tests.backend.test_time_offset import _camera
+    from vio.config import SmootherConfig
+
+    L = gtsam.symbol_shorthand.L
+    st = GraphState(Smoother(SmootherConfig()), fb.calibration(_camera()), fb.PixelNoise(1.0, 0.0, 1.345), 30, print)
+    for j, n in ((3, 4), (7, 5), (9, 6)):
+        st.values.insert(L(j), gtsam.Point3(j, 0.0, 1.0))
+        st.num_obs[j] = n
+    st.archive(7)
+    st.archive(9)
+    assert sorted(st.num_obs) == [3] and len(st.archived) == 2
+    ids, pts, nobs = st.landmark_arrays()
+    assert ids.tolist() == [3, 7, 9] and nobs.tolist() == [4, 5, 6]  # the archived ones with their counts
+    st.num_obs[7] = 2  # id 7 admitted again: a new landmark with that id, its value moved by the graph
+    st.values.update(L(7), gtsam.Point3(7.0, 0.5, 1.0))
+    ids, pts, nobs = st.landmark_arrays()
+    assert ids.tolist() == [3, 7, 9] and nobs.tolist() == [4, 2, 6]
+    assert np.allclose(pts[1], [7.0, 0.5, 1.0]) and np.allclose(pts[2], [9.0, 0.0, 1.0])
