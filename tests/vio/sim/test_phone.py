@@ -4,9 +4,11 @@ default capture unchanged byte for byte."""
 from __future__ import annotations
 
 import hashlib
+import json
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -26,8 +28,6 @@ VIO = [sys.executable, "-m", "vio.cli"]
 # sha256 prefixes of a 0.3 s default orbit (seed 3), as written before the phone camera existed (commit 16ded80).
 # Other benchmarks depend on these bytes: change them only with a simulator change meant to alter every capture.
 GOLDEN_DEFAULT = {
-    "mav0/cam0/data/1700000000000000000.png": "f31b578c36f732df",
-    "mav0/cam0/data/1700000000250000000.png": "aa1a5e2ae9e4cd38",
     "mav0/cam0/data.csv": "ba028719fc77c377",
     "mav0/cam0/sensor.yaml": "dc1794570b8f88c8",
     "mav0/imu0/data.csv": "c50deee678515cab",
@@ -35,23 +35,44 @@ GOLDEN_DEFAULT = {
     "mav0/state_groundtruth_estimate0/data.csv": "adf7e92cc14dee2a",
     "scene/scene.yaml": "808c3ce194df064b",
 }
+# The images are not compared by their bytes: OpenCV picks its SIMD code by the CPU, and the renderer's pixels move
+# by one grey level in a few places from one host to another (measured: with OPENCV_CPU_DISABLE=AVX2,FMA3,AVX, 2 of
+# the 307,200 pixels of each frame, by 1; the first frame's PNG bytes differed on the host of 2026-12-06 evening).
+# Their 16 x 16 px tile sums (30 x 40 a frame, this host's rendering, tests/vio/sim/golden_default_tiles.json) must
+# agree within TILE_TOLERANCE in all but MAX_TILES_OFF tiles: a change to the simulator moves thousands.
+GOLDEN_TILES = Path(__file__).with_name("golden_default_tiles.json")
+TILE_TOLERANCE = 4  # grey levels summed over a tile's 256 pixels
+MAX_TILES_OFF = 12  # of 1,200
 
 
-# The first frame's bytes as a venv installed on 2026-12-06 at 16:06 UTC writes them (every other file the same).
-# The change came with the wheels, not the code: the same commit passed before. Not the cause, tried one at a time:
-# numpy 2.4.5/2.4.6, OpenCV 5.0.0.93/5.1.0.95, embreex 4.4.0/4.4.0.post1, trimesh 5.1.1, manifold3d 3.5.3, scipy
-# 1.17.0. Either rendering is accepted until the cause is found.
-FIRST_FRAME_LATER_WHEELS = "37a36fe917bea133"
+def tile_sums(path: Path) -> np.ndarray:
+    """(30, 40) sums of 16 x 16 px tiles of a 640 x 480 grey PNG."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.int64)
+    return image.reshape(30, 16, 40, 16).sum(axis=(1, 3))
 
 
-def test_default_capture_is_byte_identical_to_before_the_phone_camera(tmp_path):
+def images_agree(root: Path) -> dict[str, tuple[int, int]]:
+    """Per golden frame: (tiles off by more than TILE_TOLERANCE, tiles off at all)."""
+    out = {}
+    for name, tiles in json.loads(GOLDEN_TILES.read_text()).items():
+        diff = np.abs(tile_sums(root / name) - np.asarray(tiles, np.int64))
+        out[name] = (int((diff > TILE_TOLERANCE).sum()), int((diff > 0).sum()))
+    return out
+
+
+def test_default_capture_is_the_same_as_before_the_phone_camera(tmp_path):
     root = simulate("orbit", tmp_path / "c", seed=3, duration_s=0.3, workers=1)
     got = {name: hashlib.sha256((root / name).read_bytes()).hexdigest()[:16] for name in GOLDEN_DEFAULT}
-    first = "mav0/cam0/data/1700000000000000000.png"
-    if got[first] == FIRST_FRAME_LATER_WHEELS:
-        got[first] = GOLDEN_DEFAULT[first]
     assert got == GOLDEN_DEFAULT
+    agree = images_agree(root)
+    assert len(agree) == 2 and all(far == 0 and off <= MAX_TILES_OFF for far, off in agree.values()), agree
     assert not (root / "scene" / "camera_frames.csv").exists()
+
+
+def test_the_image_check_sees_a_simulator_change(tmp_path):
+    """The tile check is not blind: the same orbit from another seed (another texture draw and path) fails it."""
+    root = simulate("orbit", tmp_path / "c", seed=4, duration_s=0.3, workers=1)
+    assert all(far > 100 for far, _ in images_agree(root).values())
 
 
 def _yawing_camera(omega_rad_s: float):
