@@ -283,16 +283,8 @@ class Smoother:
     def estimate_keys(self, keys: list[int]) -> gtsam.Values:
         """Current estimate of some pose/velocity/bias/point keys only (cheaper than `estimate()` on long runs).
 
-        Many keys against the solver's size (`ESTIMATE_ALL_PER_KEY`): the whole estimate, then those keys copied
-        out, two calls into gtsam. Key by key, `Values.insert` costs about 20 us for a pose and 150 us for a bias
-        (pybind11 tries the 43 overloads before it), against about 1 us a variable for the whole estimate: a
-        keyframe's 50-100 recent keys took 6.0 ms key by key and 1.1 ms this way in a 950-variable window (60 s
-        orbit 402, fixed lag; docs/BENCHMARKS.md). The same values to the bit either way (tested)."""
-        if len(keys) * ESTIMATE_ALL_PER_KEY >= len(self._keys) > 0:
-            try:
-                return self._isam.calculateEstimate().extract(list(keys))
-            except RuntimeError as exc:
-                raise SolverFailure(first_line(exc)) from exc
+        Poses and biases are inserted by argument name (`_INSERT_KEYWORDS`): a keyframe's 50-100 recent keys took
+        5.96 ms with every value passed by position and 1.1-1.2 ms this way (60 s orbit 402; docs/BENCHMARKS.md)."""
         out = gtsam.Values()
         try:
             for key in keys:
@@ -300,7 +292,11 @@ class Smoother:
                 if getter is None:  # a gtsam.Symbol per key and keyframe cost more than the estimate itself
                     getter = _GETTERS.get(chr(gtsam.Symbol(key).chr()), "calculateEstimatePoint3")
                     self._getter_of[key] = getter
-                out.insert(key, getattr(self._isam, getter)(key))
+                keyword = _INSERT_KEYWORDS.get(getter)
+                if keyword is None:
+                    out.insert(key, getattr(self._isam, getter)(key))
+                else:  # by name: pybind11 then skips the other overloads without trying to convert the value
+                    out.insert(key, **{keyword: getattr(self._isam, getter)(key)})
         except (RuntimeError, IndexError) as exc:  # IndexError: a key the solver does not hold
             raise SolverFailure(first_line(exc)) from exc
         return out
@@ -324,8 +320,6 @@ class Smoother:
             raise SolverFailure(first_line(exc)) from exc
 
 
-ESTIMATE_ALL_PER_KEY = 40  # `estimate_keys` takes the whole estimate when it asks for more than 1/40 of the solver
-
 NO_WEIGHT = 1e6  # sigma of the background step's priors: 1e-12 of information against about 1e4-1e8 per variable
 
 
@@ -343,6 +337,11 @@ def _no_weight_prior(key: int, values: gtsam.Values) -> gtsam.NonlinearFactor:
 
 
 _GETTERS = {"x": "calculateEstimatePose3", "v": "calculateEstimateVector", "b": "calculateEstimateConstantBias"}
+# `Values.insert`'s argument names for the kinds whose overload comes late (poses 10th, biases 44th of 46): by name
+# a pose took 3 us instead of 20, a bias 10 instead of 48-187 (2,000 inserts). Vectors and points stay positional:
+# their overload comes early, and a point by name would be stored as a fixed-size vector, not as the dynamic one
+# every other place stores
+_INSERT_KEYWORDS = {"calculateEstimatePose3": "pose3", "calculateEstimateConstantBias": "constant_bias"}
 
 
 def batch_solve(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int = 100) -> gtsam.Values:
