@@ -382,8 +382,8 @@ def test_the_landmarks_last_seen_at_a_keyframe_are_what_a_scan_of_last_obs_gives
 
 def test_estimate_keys_gives_the_whole_estimates_values_to_the_bit(data):
     """`Smoother.estimate_keys` inserts poses and biases by argument name (pybind11's overload search made a bias
-    cost 150 us by position): the same values, to the bit and of the same kinds, as the whole estimate, for poses,
-    velocities, biases and landmarks; a key the solver does not hold is a SolverFailure."""
+    cost 150 us by position): the same values, to the bit, as the whole estimate, for poses, velocities, biases and
+    landmarks; a key the solver does not hold is a SolverFailure."""
     from backend.smoother import SolverFailure
 
     cam, imu, cal, t_kf, tracks, gt = data
